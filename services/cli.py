@@ -1,0 +1,133 @@
+"""``kmvipe``: run the pipeline, one service, an edge publisher, the demo, and the tools of each stage."""
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import logging
+import sys
+from pathlib import Path
+
+from .common.errors import KmVipeError
+from .common.logs import setup_logging
+from .runner import children
+
+DEFAULT_DEMO_SOURCE = "synth:frames={frames},seed={seed}"
+
+
+def _add_stream_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--stream", default="cam0", help="stream name (the <s> in kmvipe/<s>/...)")
+    p.add_argument("--pacing", choices=["lossless", "realtime"], default="lossless")
+    p.add_argument("--encoding", choices=["jpeg", "raw"], default="jpeg")
+    p.add_argument("--intrinsics", type=float, nargs=4, metavar=("FX", "FY", "CX", "CY"),
+                   help="optional calibration hint in source pixels (else estimated)")
+    p.add_argument("--max-frames", type=int)
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from .runner.pipeline import RunSettings, run_pipeline
+
+    cfg = RunSettings(
+        source=args.source, out=Path(args.out), stream=args.stream, pacing=args.pacing, encoding=args.encoding,
+        intrinsics=tuple(args.intrinsics) if args.intrinsics else None, max_frames=args.max_frames, serve=args.serve,
+    )
+    report = run_pipeline(cfg)
+    _print_summary(report)
+    return 0 if report.end_reason == "end" else 1
+
+
+def _print_summary(report) -> None:
+    print(f"\nKM-ViPE run of {report.source} (stream {report.stream}): {report.end_reason}")
+    print(f"  services ran:      {', '.join(report.services_ran)}")
+    if report.services_not_built:
+        print(f"  not built yet:     {', '.join(report.services_not_built)}")
+    print(f"  frames:            {report.frames} in {report.duration_s:.1f} s ({report.fps:.1f} fps), "
+          f"{report.frames_dropped_or_lost} dropped or lost")
+    print(f"  keyframes:         {report.keyframes}")
+    print(f"  frames with pose:  {report.posed_frames}")
+    for path in report.outputs:
+        print(f"  wrote {path}")
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    args.source = DEFAULT_DEMO_SOURCE.format(frames=args.frames, seed=args.seed)
+    return _cmd_run(args)
+
+
+def _cmd_service(args: argparse.Namespace) -> int:
+    if args.name not in children.PIPELINE:
+        raise KmVipeError(f"unknown service {args.name!r}; services: {', '.join(children.PIPELINE)}")
+    if not children.is_built(args.name):
+        raise KmVipeError(f"service {args.name!r} is not built in this version of KM-ViPE")
+    return importlib.import_module(f"services.{args.name}.__main__").main()
+
+
+def _cmd_publish(args: argparse.Namespace) -> int:
+    """The ingest service on an edge device: client mode against a remote router."""
+    import os
+
+    os.environ.update({
+        "KMVIPE_BUS_MODE": "client", "KMVIPE_BUS_CONNECT": json.dumps(args.connect), "KMVIPE_BUS_LISTEN": "[]",
+        "KMVIPE_INGEST_SOURCE": args.source, "KMVIPE_INGEST_STREAM": args.stream,
+        "KMVIPE_INGEST_PACING": args.pacing, "KMVIPE_INGEST_ENCODING": args.encoding,
+    })
+    if args.intrinsics:
+        os.environ["KMVIPE_INGEST_INTRINSICS"] = json.dumps(args.intrinsics)
+    if args.max_frames:
+        os.environ["KMVIPE_INGEST_MAX_FRAMES"] = str(args.max_frames)
+    return importlib.import_module("services.ingest.__main__").main()
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="kmvipe", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("run", help="run the whole pipeline on a source, write outputs")
+    p.add_argument("source", help="video file, image folder, camera index, rtsp/http URL, or synth:...")
+    p.add_argument("--out", default="out/run", help="output directory")
+    p.add_argument("--serve", action="store_true", help="keep the query API up after the stream ends")
+    _add_stream_options(p)
+    p.set_defaults(func=_cmd_run)
+
+    p = sub.add_parser("demo", help="run the synthetic world through the pipeline")
+    p.add_argument("--out", default="out/demo")
+    p.add_argument("--frames", type=int, default=120)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--serve", action="store_true")
+    _add_stream_options(p)
+    p.set_defaults(func=_cmd_demo)
+
+    p = sub.add_parser("service", help="run one service (what docker-compose runs); settings from the environment")
+    p.add_argument("name", help=", ".join(children.PIPELINE))
+    p.set_defaults(func=_cmd_service)
+
+    p = sub.add_parser("publish", help="stream a camera or file from an edge device to a remote router")
+    p.add_argument("source")
+    p.add_argument("--connect", action="append", required=True, metavar="ENDPOINT", help="e.g. tcp/10.0.0.2:7447")
+    _add_stream_options(p)
+    p.set_defaults(func=_cmd_publish, pacing="realtime")
+
+    for module in _TOOL_MODULES:
+        importlib.import_module(module).register(sub)
+    return parser
+
+
+# Tools of later stages; each exposes register(subparsers).
+_TOOL_MODULES: list[str] = []
+
+
+def main(argv: list[str] | None = None) -> int:
+    setup_logging("kmvipe")
+    logging.getLogger().setLevel(logging.WARNING)
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except KmVipeError as exc:
+        print(f"kmvipe: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

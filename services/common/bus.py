@@ -1,0 +1,205 @@
+"""The Zenoh bus every service uses: session from typed settings, typed publish/subscribe, queryables,
+liveliness, and counting of bad payloads (a bad payload is logged once per kind and dropped — never a crash).
+"""
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import threading
+import uuid
+from collections import Counter
+from dataclasses import dataclass
+from typing import Callable, Iterable
+
+import zenoh
+
+from . import keys
+from .config import BusSettings
+from .errors import DecodeError, ServiceTimeout
+from .schema import Message, decode, encode
+
+log = logging.getLogger(__name__)
+
+
+def zenoh_config(settings: BusSettings) -> zenoh.Config:
+    """Translate :class:`BusSettings` into a ``zenoh.Config``."""
+    conf = zenoh.Config.from_file(str(settings.zenoh_config)) if settings.zenoh_config else zenoh.Config()
+    conf.insert_json5("mode", json.dumps(settings.mode))
+    if settings.listen:
+        conf.insert_json5("listen/endpoints", json.dumps(settings.listen))
+    if settings.connect:
+        conf.insert_json5("connect/endpoints", json.dumps(settings.connect))
+    conf.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
+    conf.insert_json5("transport/shared_memory/enabled", json.dumps(settings.shared_memory))
+    return conf
+
+
+def open_session(settings: BusSettings) -> zenoh.Session:
+    return zenoh.open(zenoh_config(settings))
+
+
+class PayloadStats:
+    """Counts payloads that failed to decode or to be handled, per key and reason; logs each reason once."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.counts: Counter[tuple[str, str]] = Counter()
+
+    def record(self, key: str, reason: str, detail: str) -> None:
+        with self._lock:
+            first = (key, reason) not in self.counts
+            self.counts[(key, reason)] += 1
+        if first:
+            log.warning("dropped bad payload (logged once per kind)", extra={"key": key, "reason": reason, "detail": detail})
+
+    @property
+    def total(self) -> int:
+        with self._lock:
+            return sum(self.counts.values())
+
+
+@dataclass(frozen=True)
+class Delivery:
+    """A decoded message and the key it arrived on."""
+
+    key: str
+    msg: Message
+
+
+class Inbox:
+    """A bounded queue of deliveries for a service's single-threaded loop. When full, new messages are dropped
+    and counted: with credit-based flow control it never fills in lossless operation."""
+
+    def __init__(self, maxsize: int):
+        self._queue: queue.Queue[Delivery] = queue.Queue(maxsize)
+        self.dropped = 0
+
+    def put(self, item: Delivery) -> None:
+        try:
+            self._queue.put_nowait(item)
+        except queue.Full:
+            self.dropped += 1
+            log.warning("inbox full, message dropped", extra={"key": item.key, "seq": item.msg.seq})
+
+    def get(self, timeout: float) -> Delivery | None:
+        try:
+            return self._queue.get(timeout=timeout)
+        except queue.Empty:
+            return None
+
+    def qsize(self) -> int:
+        return self._queue.qsize()
+
+
+class Bus:
+    """One service instance on the bus: a Zenoh session plus its liveliness token."""
+
+    def __init__(self, settings: BusSettings, service: str, instance: str | None = None):
+        self.service = keys.check_name(service, "service")
+        self.instance = keys.check_name(instance or uuid.uuid4().hex[:8], "instance")
+        self.session = open_session(settings)
+        self.stats = PayloadStats()
+        self._publishers: dict[tuple[str, bool], zenoh.Publisher] = {}
+        self._handles: list = []
+        self._token = None
+
+    def ready(self) -> None:
+        """Declare this instance's liveliness token. Services call it once their subscriptions are declared, so
+        "alive" on the bus means "ready to take messages" (the runner starts the source only then)."""
+        if self._token is None:
+            self._token = self.session.liveliness().declare_token(keys.alive(self.service, self.instance))
+
+    # --- publish / subscribe -------------------------------------------------------------------------
+    def publish(self, key: str, msg: Message, *, drop_if_congested: bool = False) -> None:
+        """Send ``msg`` reliably on ``key``. By default a congested link blocks (lossless); with
+        ``drop_if_congested`` the message is dropped instead (real-time streams)."""
+        self.put(key, encode(msg), drop_if_congested=drop_if_congested)
+
+    def put(self, key: str, payload: bytes, *, drop_if_congested: bool = False) -> None:
+        pub = self._publishers.get((key, drop_if_congested))
+        if pub is None:
+            congestion = zenoh.CongestionControl.DROP if drop_if_congested else zenoh.CongestionControl.BLOCK
+            pub = self.session.declare_publisher(key, congestion_control=congestion, reliability=zenoh.Reliability.RELIABLE)
+            self._publishers[(key, drop_if_congested)] = pub
+        pub.put(payload)
+
+    def subscribe(self, key: str, on_message: Callable[[Delivery], None], expect: Iterable[type[Message]] = ()) -> None:
+        """Call ``on_message`` (on a Zenoh thread) for every valid message on ``key``; bad payloads are counted."""
+        allowed = tuple(expect)
+
+        def _callback(sample: zenoh.Sample) -> None:
+            key_str = str(sample.key_expr)
+            try:
+                msg = decode(sample.payload.to_bytes())
+                if allowed and not isinstance(msg, allowed):
+                    raise DecodeError(f"unexpected message kind {msg.KIND!r} on {key_str}")
+            except DecodeError as exc:
+                self.stats.record(key_str, "decode", str(exc))
+                return
+            try:
+                on_message(Delivery(key_str, msg))
+            except Exception as exc:  # the error boundary of a callback: log, count, keep the session alive
+                log.exception("handler failed", extra={"key": key_str, "seq": msg.seq})
+                self.stats.record(key_str, "handler", repr(exc))
+
+        self._handles.append(self.session.declare_subscriber(key, _callback))
+
+    def inbox(self, subscriptions: dict[str, Iterable[type[Message]]], maxsize: int = 1024) -> Inbox:
+        """Subscribe to several keys (each with the message kinds it may carry) into one bounded inbox."""
+        box = Inbox(maxsize)
+        for key, kinds in subscriptions.items():
+            self.subscribe(key, box.put, kinds)
+        return box
+
+    # --- queries -------------------------------------------------------------------------------------
+    def serve(self, key: str, handler: Callable[[str, dict, bytes | None], bytes]) -> None:
+        """Declare a queryable; ``handler(key, parameters, payload) -> reply bytes``. Errors become error
+        replies with their message, never a crash."""
+
+        def _callback(query: zenoh.Query) -> None:
+            payload = query.payload.to_bytes() if query.payload is not None else None
+            try:
+                params = dict(query.selector.parameters)
+                query.reply(query.key_expr, handler(str(query.key_expr), params, payload))
+            except Exception as exc:
+                self.stats.record(str(query.key_expr), "query", repr(exc))
+                query.reply_err(f"{type(exc).__name__}: {exc}")
+
+        self._handles.append(self.session.declare_queryable(key, _callback))
+
+    def request(self, selector: str, payload: bytes | None = None, timeout: float = 5.0, service: str = "") -> bytes:
+        """Ask one queryable; the first OK reply's bytes. Raises ServiceTimeout, or RuntimeError for an error reply."""
+        errors = []
+        for reply in self.session.get(selector, payload=payload, timeout=timeout):
+            if reply.ok is not None:
+                return reply.ok.payload.to_bytes()
+            errors.append(reply.err.payload.to_string())
+        if errors:
+            raise RuntimeError(f"{service or selector}: {errors[0]}")
+        raise ServiceTimeout(service or selector, timeout)
+
+    # --- liveliness ----------------------------------------------------------------------------------
+    def alive(self, timeout: float = 1.0) -> dict[str, list[str]]:
+        """Services currently alive on the bus: ``{service: [instance, ...]}``."""
+        found: dict[str, list[str]] = {}
+        for reply in self.session.liveliness().get(keys.alive("*", "*"), timeout=timeout):
+            if reply.ok is not None:
+                service, instance = keys.parse_alive(str(reply.ok.key_expr))
+                found.setdefault(service, []).append(instance)
+        return found
+
+    def close(self) -> None:
+        for handle in self._handles:
+            handle.undeclare()
+        self._handles.clear()
+        if self._token is not None:
+            self._token.undeclare()
+            self._token = None
+        self.session.close()
+
+    def __enter__(self) -> "Bus":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

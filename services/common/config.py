@@ -1,0 +1,53 @@
+"""Typed settings shared by every service: the Zenoh bus and logging.
+
+Each is built once from the environment (``KMVIPE_BUS_*``, ``KMVIPE_LOG_*``) or an optional ``.env`` file;
+defaults work on one machine. Lists are JSON in the environment: ``KMVIPE_BUS_CONNECT='["tcp/10.0.0.2:7447"]'``.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+ENDPOINT_PREFIXES = ("tcp/", "udp/", "tls/", "quic/", "ws/", "unixsock-stream/")
+
+
+class BusSettings(BaseSettings):
+    """How a process joins the Zenoh bus."""
+
+    model_config = SettingsConfigDict(env_prefix="KMVIPE_BUS_", env_file=".env", extra="ignore")
+
+    mode: Literal["peer", "client", "router"] = "peer"
+    """peer on one machine or a LAN; client on edge devices and in containers (they connect to a router)."""
+    listen: list[str] = []
+    """Endpoints to listen on, e.g. ``tcp/127.0.0.1:7447`` or ``unixsock-stream//tmp/kmvipe.sock``."""
+    connect: list[str] = []
+    """Endpoints to connect to (a router, or a peer)."""
+    multicast_scouting: bool = False
+    """Off by default: discovery by multicast floods shared networks and makes tests leak into each other."""
+    shared_memory: bool = False
+    """Let Zenoh move large payloads through shared memory between processes on one host."""
+    zenoh_config: Path | None = None
+    """A Zenoh JSON5 config file to start from; the fields above override it."""
+
+    @field_validator("listen", "connect")
+    @classmethod
+    def _endpoints(cls, value: list[str]) -> list[str]:
+        for ep in value:
+            if not ep.startswith(ENDPOINT_PREFIXES):
+                raise ValueError(
+                    f"endpoint {ep!r} must start with one of {', '.join(ENDPOINT_PREFIXES)} (e.g. tcp/127.0.0.1:7447)"
+                )
+        return value
+
+
+class LogSettings(BaseSettings):
+    """Logging of one process."""
+
+    model_config = SettingsConfigDict(env_prefix="KMVIPE_LOG_", env_file=".env", extra="ignore")
+
+    level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+    format: Literal["text", "json"] = "text"
+    """text: ``time level logger message key=value…``; json: one object per line for log shippers."""

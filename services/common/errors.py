@@ -1,0 +1,30 @@
+"""One exception base for the whole project; specific subclasses say what went wrong."""
+
+
+class KmVipeError(Exception):
+    """Base of every error KM-ViPE raises on purpose."""
+
+
+class ConfigError(KmVipeError):
+    """A setting is missing or has a value that cannot work (the message says which and how to fix it)."""
+
+
+class DecodeError(KmVipeError):
+    """A payload is not a valid KM-ViPE message (bad msgpack, wrong kind, wrong version, bad field)."""
+
+
+class SourceError(KmVipeError):
+    """A video source cannot be opened or read (missing file, no camera, unreachable URL)."""
+
+
+class ModelError(KmVipeError):
+    """A model is missing, corrupt, or does not fit the map it is asked to serve."""
+
+
+class ServiceTimeout(KmVipeError):
+    """A service did not answer a request within its deadline."""
+
+    def __init__(self, service: str, seconds: float):
+        super().__init__(f"service '{service}' did not answer within {seconds:.1f} s")
+        self.service = service
+        self.seconds = seconds

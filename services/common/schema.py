@@ -1,0 +1,331 @@
+"""Every message on the KM-ViPE bus, versioned, with encode/decode and validation.
+
+A message is a frozen dataclass; on the wire it is a msgpack map ``{"kind", "v", <fields>}`` (see
+:mod:`services.common.codec`). :func:`decode` checks kind, version, field types, array dtypes and shapes, and
+raises :class:`DecodeError` with a message that names the field — services count and drop such payloads.
+Every message carries ``stream``, ``seq`` and ``t_ns`` so one frame can be followed through the logs.
+Conventions (poses ``world_from_cam``, RGB, the 1/8 grid) are in docs/CONVENTIONS.md.
+"""
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Optional, Union
+
+import numpy as np
+
+from . import codec
+from .errors import DecodeError
+
+SCHEMA_VERSION = 1
+MAX_DIM = 1 << 16  # no image side or list length on the wire is larger
+
+
+def arr(dtypes: str, shape: tuple) -> dict:
+    """Field metadata for an array: allowed dtype chars (e.g. ``"u1"``, ``"f4 f8"``) and a shape pattern
+    whose entries are ints, ``None`` (any) or names shared between fields (must agree within a message)."""
+    return {"dtypes": tuple(np.dtype(d) for d in dtypes.split()), "shape": shape}
+
+
+@dataclass(frozen=True)
+class Message:
+    """Fields every message has."""
+
+    KIND: ClassVar[str] = ""
+    stream: str
+    seq: int
+    t_ns: int
+
+    def check(self) -> None:
+        """Cross-field rules beyond types and shapes; raise DecodeError."""
+
+    def encode(self) -> bytes:
+        return encode(self)
+
+
+@dataclass(frozen=True)
+class Frame(Message):
+    """ingest → features: one camera frame. Exactly one of ``image`` (raw RGB) and ``jpeg`` is set."""
+
+    KIND: ClassVar[str] = "frame"
+    width: int
+    height: int
+    image: Optional[np.ndarray] = field(default=None, metadata=arr("u1", ("H", "W", 3)))
+    jpeg: Optional[bytes] = None
+    intrinsics: Optional[np.ndarray] = field(default=None, metadata=arr("f8", (4,)))  # fx fy cx cy (px)
+    depth: Optional[np.ndarray] = field(default=None, metadata=arr("f4", ("H", "W")))  # metres, 0 = missing
+
+    def check(self) -> None:
+        if (self.image is None) == (self.jpeg is None):
+            raise DecodeError("frame: exactly one of 'image' and 'jpeg' must be set")
+        if self.image is not None and self.image.shape[:2] != (self.height, self.width):
+            raise DecodeError(f"frame: image shape {self.image.shape} does not match {self.height}x{self.width}")
+        if self.depth is not None and self.depth.shape != (self.height, self.width):
+            raise DecodeError(f"frame: depth shape {self.depth.shape} does not match {self.height}x{self.width}")
+
+
+@dataclass(frozen=True)
+class Credit(Message):
+    """features → ingest: ``seq`` is the highest frame seq ``consumer`` can take now."""
+
+    KIND: ClassVar[str] = "credit"
+    consumer: str = ""
+
+
+@dataclass(frozen=True)
+class Keyframe(Message):
+    """features → ba, mapstore: a keyframe at working resolution with its codes on the 1/8 grid."""
+
+    KIND: ClassVar[str] = "keyframe"
+    image: np.ndarray = field(metadata=arr("u1", ("H", "W", 3)))
+    intrinsics: np.ndarray = field(metadata=arr("f8", (4,)))  # at working resolution
+    orig_width: int = 0
+    orig_height: int = 0
+    pca_version: int = -1  # -1: no codes (geometry only)
+    codes: Optional[np.ndarray] = field(default=None, metadata=arr("f2 f4", ("h", "w", "K")))
+    disparity_prior: Optional[np.ndarray] = field(default=None, metadata=arr("f4", ("h", "w")))  # 1/m, 0 = none
+
+    def check(self) -> None:
+        h, w = self.image.shape[:2]
+        if h % 8 or w % 8:
+            raise DecodeError(f"keyframe: working size {w}x{h} must be multiples of 8")
+        for name in ("codes", "disparity_prior"):
+            grid = getattr(self, name)
+            if grid is not None and grid.shape[:2] != (h // 8, w // 8):
+                raise DecodeError(f"keyframe: {name} grid {grid.shape[:2]} must be {(h // 8, w // 8)}")
+
+
+@dataclass(frozen=True)
+class FrameLite(Message):
+    """features → ba: a non-keyframe as a small grey image, for motion-only pose filling."""
+
+    KIND: ClassVar[str] = "frame_lite"
+    image: np.ndarray = field(metadata=arr("u1", (None, None)))
+    intrinsics: np.ndarray = field(metadata=arr("f8", (4,)))  # for this small image
+    ref_seq: int = -1  # the last keyframe before it
+
+
+@dataclass(frozen=True)
+class PcaBasis(Message):
+    """features → all: the frozen PCA basis. codes z ↦ feature ≈ mean + z @ components."""
+
+    KIND: ClassVar[str] = "pca"
+    version: int
+    backbone: str
+    mean: np.ndarray = field(metadata=arr("f4", ("D",)))
+    components: np.ndarray = field(metadata=arr("f4", ("K", "D")))
+    explained_variance: Optional[np.ndarray] = field(default=None, metadata=arr("f4", ("K",)))
+
+
+@dataclass(frozen=True)
+class Graph(Message):
+    """ba → mapstore: the keyframe graph state. ``poses`` for all of ``kf_seqs``; disparities, static (ARK)
+    weights and flow confidences only for the keyframes in ``updated_seqs``."""
+
+    KIND: ClassVar[str] = "graph"
+    kf_seqs: np.ndarray = field(metadata=arr("i8", ("N",)))
+    poses: np.ndarray = field(metadata=arr("f8", ("N", 4, 4)))  # world_from_cam
+    intrinsics: np.ndarray = field(metadata=arr("f8", (4,)))  # at working resolution
+    width: int = 0
+    height: int = 0
+    updated_seqs: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), metadata=arr("i8", ("M",)))
+    disparities: Optional[np.ndarray] = field(default=None, metadata=arr("f4", ("M", "h", "w")))
+    static_weights: Optional[np.ndarray] = field(default=None, metadata=arr("f4", ("M", "h", "w")))
+    confidence: Optional[np.ndarray] = field(default=None, metadata=arr("f4", ("M", "h", "w")))
+    metric: bool = False  # True when a depth prior fixed the scale
+    final: bool = False
+
+
+@dataclass(frozen=True)
+class Poses(Message):
+    """ba → anyone: camera poses of frames (the trajectory stream); re-sent when BA revises them."""
+
+    KIND: ClassVar[str] = "pose"
+    frame_seqs: np.ndarray = field(metadata=arr("i8", ("N",)))
+    stamps_ns: np.ndarray = field(metadata=arr("i8", ("N",)))
+    poses: np.ndarray = field(metadata=arr("f8", ("N", 4, 4)))  # world_from_cam
+    final: bool = False
+
+
+@dataclass(frozen=True)
+class Intrinsics(Message):
+    """ba → features: refined intrinsics at working resolution."""
+
+    KIND: ClassVar[str] = "intrinsics"
+    intrinsics: np.ndarray = field(metadata=arr("f8", (4,)))
+    width: int
+    height: int
+
+
+@dataclass(frozen=True)
+class Eos(Message):
+    """each stage → next: end of stream. ``stage`` says who sent it; ``seq`` is the last frame seq."""
+
+    KIND: ClassVar[str] = "eos"
+    stage: str
+    count: int = 0  # messages of its main kind that stage published
+    reason: str = "end"  # "end" | "error" | "stopped"
+
+
+# --- mapstore queries (``kmvipe/<s>/map/<verb>``: the request is the query payload, the answer the reply) ---
+
+
+@dataclass(frozen=True)
+class MapQuery(Message):
+    """query_api → mapstore: score query vectors given in the backbone space ``space``.
+    Verbs: ``map/query`` (regions + top-k points per vector), ``map/segment`` (argmax over the vectors as a
+    label set, per point). ``seq`` is a request id, echoed in the answer."""
+
+    KIND: ClassVar[str] = "map_query"
+    vectors: np.ndarray = field(metadata=arr("f4", ("Q", "D")))
+    space: str = ""  # backbone id the vectors live in; must equal the map's PCA backbone
+    top_k: int = 20  # points returned per query vector
+    threshold: float = -1.0  # region score threshold; < 0: chosen by the mapstore relative to the best score
+    max_regions: int = 10
+    with_points: bool = False  # per-point scores of every map point (large)
+
+
+@dataclass(frozen=True)
+class MapAnswer(Message):
+    """mapstore → query_api: regions and top points, flattened over queries (``*_query`` says which)."""
+
+    KIND: ClassVar[str] = "map_answer"
+    region_query: np.ndarray = field(metadata=arr("i4", ("R",)))
+    region_score: np.ndarray = field(metadata=arr("f4", ("R",)))
+    region_centroid: np.ndarray = field(metadata=arr("f4", ("R", 3)))
+    region_box_min: np.ndarray = field(metadata=arr("f4", ("R", 3)))
+    region_box_max: np.ndarray = field(metadata=arr("f4", ("R", 3)))
+    region_count: np.ndarray = field(metadata=arr("i4", ("R",)))
+    point_query: np.ndarray = field(metadata=arr("i4", ("P",)))
+    point_xyz: np.ndarray = field(metadata=arr("f4", ("P", 3)))
+    point_score: np.ndarray = field(metadata=arr("f4", ("P",)))
+    all_scores: Optional[np.ndarray] = field(default=None, metadata=arr("f4", ("Q", "N")))
+    n_points: int = 0
+
+
+@dataclass(frozen=True)
+class MapSegment(Message):
+    """mapstore → query_api: per-point argmax label (index into the query vectors) and its score."""
+
+    KIND: ClassVar[str] = "map_segment"
+    xyz: np.ndarray = field(metadata=arr("f4", ("N", 3)))
+    label: np.ndarray = field(metadata=arr("i4", ("N",)))
+    score: np.ndarray = field(metadata=arr("f4", ("N",)))
+
+
+@dataclass(frozen=True)
+class MapChunk(Message):
+    """mapstore → anyone (``map/export?chunk=i``): one chunk of the fused map; ``seq`` = chunk index."""
+
+    KIND: ClassVar[str] = "map_chunk"
+    xyz: np.ndarray = field(metadata=arr("f4", ("N", 3)))
+    rgb: np.ndarray = field(metadata=arr("u1", ("N", 3)))
+    codes: Optional[np.ndarray] = field(default=None, metadata=arr("f2", ("N", "K")))
+    n_chunks: int = 1
+    total_points: int = 0
+
+
+@dataclass(frozen=True)
+class MapStats(Message):
+    """mapstore → anyone (``map/stats``)."""
+
+    KIND: ClassVar[str] = "map_stats"
+    keyframes: int = 0
+    points: int = 0
+    voxels: int = 0
+    backbone: str = ""
+    pca_version: int = -1
+    metric: bool = False
+
+
+MESSAGES: dict[str, type[Message]] = {
+    cls.KIND: cls
+    for cls in (
+        Frame, Credit, Keyframe, FrameLite, PcaBasis, Graph, Poses, Intrinsics, Eos,
+        MapQuery, MapAnswer, MapSegment, MapChunk, MapStats,
+    )
+}
+
+
+def encode(msg: Message) -> bytes:
+    """Message → payload bytes."""
+    body = {"kind": msg.KIND, "v": SCHEMA_VERSION}
+    for f in dataclasses.fields(msg):
+        value = getattr(msg, f.name)
+        if value is not None:
+            body[f.name] = value
+    return codec.pack(body)
+
+
+def decode(payload: bytes | bytearray | memoryview, expect: type[Message] | None = None) -> Message:
+    """Payload bytes → validated message; ``expect`` restricts the kind. Raises DecodeError."""
+    body = codec.unpack(payload)
+    if not isinstance(body, dict):
+        raise DecodeError(f"payload is a {type(body).__name__}, not a message map")
+    kind, version = body.get("kind"), body.get("v")
+    if version != SCHEMA_VERSION:
+        raise DecodeError(f"schema version {version!r} not supported (this build speaks v{SCHEMA_VERSION})")
+    cls = MESSAGES.get(kind) if isinstance(kind, str) else None
+    if cls is None:
+        raise DecodeError(f"unknown message kind {kind!r}")
+    if expect is not None and cls is not expect:
+        raise DecodeError(f"expected a {expect.KIND!r} message, got {kind!r}")
+    return from_dict(cls, body)
+
+
+def from_dict(cls: type[Message], body: dict) -> Message:
+    """Build and validate ``cls`` from a decoded map (unknown keys are ignored: newer minor fields)."""
+    hints = typing.get_type_hints(cls)
+    dims: dict[str, int] = {}
+    values = {}
+    for f in dataclasses.fields(cls):
+        if f.name not in body:
+            if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+                raise DecodeError(f"{cls.KIND}: missing field '{f.name}'")
+            continue
+        values[f.name] = _check_field(cls.KIND, f, hints[f.name], body[f.name], dims)
+    msg = cls(**values)
+    msg.check()
+    return msg
+
+
+def _check_field(kind: str, f: dataclasses.Field, hint: Any, value: Any, dims: dict[str, int]) -> Any:
+    optional = typing.get_origin(hint) in (Union, types.UnionType) and type(None) in typing.get_args(hint)
+    base = next(a for a in typing.get_args(hint) if a is not type(None)) if optional else hint
+    if value is None:
+        if optional:
+            return None
+        raise DecodeError(f"{kind}: field '{f.name}' must not be null")
+    if base is np.ndarray:
+        return _check_array(kind, f.name, value, f.metadata, dims)
+    ok = {
+        int: lambda v: isinstance(v, int) and not isinstance(v, bool) and abs(v) < 1 << 63,
+        float: lambda v: isinstance(v, (int, float)) and not isinstance(v, bool),
+        bool: lambda v: isinstance(v, bool),
+        str: lambda v: isinstance(v, str) and len(v) <= 4096,
+        bytes: lambda v: isinstance(v, (bytes, bytearray)),
+    }[base]
+    if not ok(value):
+        raise DecodeError(f"{kind}: field '{f.name}' must be {base.__name__}, got {type(value).__name__}")
+    return float(value) if base is float else value
+
+
+def _check_array(kind: str, name: str, value: Any, meta: Any, dims: dict[str, int]) -> np.ndarray:
+    if not isinstance(value, np.ndarray):
+        raise DecodeError(f"{kind}: field '{name}' must be an array, got {type(value).__name__}")
+    if value.dtype not in meta["dtypes"]:
+        allowed = ", ".join(str(d) for d in meta["dtypes"])
+        raise DecodeError(f"{kind}: field '{name}' has dtype {value.dtype}, expected {allowed}")
+    pattern = meta["shape"]
+    if value.ndim != len(pattern):
+        raise DecodeError(f"{kind}: field '{name}' has shape {value.shape}, expected {len(pattern)} dims {pattern}")
+    for n, want in zip(value.shape, pattern):
+        if n > MAX_DIM:
+            raise DecodeError(f"{kind}: field '{name}' dimension {n} exceeds {MAX_DIM}")
+        if isinstance(want, int) and n != want:
+            raise DecodeError(f"{kind}: field '{name}' has shape {value.shape}, expected {pattern}")
+        if isinstance(want, str) and dims.setdefault(want, n) != n:
+            raise DecodeError(f"{kind}: field '{name}' dimension {want}={n} disagrees with {dims[want]}")
+    return value

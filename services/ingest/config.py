@@ -1,0 +1,40 @@
+"""Settings of the ingest service (env prefix ``KMVIPE_INGEST_``)."""
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class IngestSettings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="KMVIPE_INGEST_", env_file=".env", extra="ignore")
+
+    source: str = ""
+    """Video file, image folder (plain, TUM ``rgb.txt``, KITTI ``image_0/``), camera index or ``/dev/videoN``,
+    ``rtsp://`` / ``http(s)://`` URL, or ``synth:frames=200,seed=0`` for the synthetic world."""
+    stream: str = "cam0"
+    """Stream name: the ``<s>`` in every key, so one deployment can serve several cameras."""
+    pacing: Literal["lossless", "realtime"] = "lossless"
+    """lossless: wait for credit, every frame is delivered; realtime: keep the source's pace, drop when behind."""
+    encoding: Literal["jpeg", "raw"] = "jpeg"
+    jpeg_quality: int = Field(90, ge=10, le=100)
+    intrinsics: list[float] | None = None
+    """Optional hint ``[fx, fy, cx, cy]`` in source pixels; without it, features guesses and BA refines."""
+    use_depth: bool = True
+    """Send sensor depth when the source has it (TUM depth folder)."""
+    max_frames: int | None = Field(None, ge=1)
+    stride: int = Field(1, ge=1)
+    fps: float | None = Field(None, gt=0)
+    """Rate of a file source in realtime mode (default: the file's own rate, else 10)."""
+    credit_ttl_s: float = Field(5.0, gt=0)
+    """A consumer that has granted no credit for this long no longer holds the stream back."""
+    wait_for_consumer_s: float = Field(60.0, ge=0)
+    """Lossless mode: how long to wait for the first credit before giving up with a clear error."""
+
+    @field_validator("intrinsics")
+    @classmethod
+    def _four(cls, value: list[float] | None) -> list[float] | None:
+        if value is not None and (len(value) != 4 or min(value[:2]) <= 0):
+            raise ValueError("intrinsics must be [fx, fy, cx, cy] with fx, fy > 0")
+        return value

@@ -1,0 +1,128 @@
+"""Ingest service: reads a source, publishes ``frame`` messages under credit-based flow control, ends with
+``eos``. Corrupt frames are logged and counted; the stream goes on."""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+import cv2
+import numpy as np
+
+from ..common import keys
+from ..common.bus import Bus, Delivery
+from ..common.schema import Credit, Eos, Frame
+from .config import IngestSettings
+from .core.pacing import CreditLedger, Decision, IngestCounters, decide
+from .sources import BadFrame, Source, SourceFrame, open_source
+
+log = logging.getLogger(__name__)
+CREDIT_POLL_S = 0.05
+
+
+def frame_message(cfg: IngestSettings, seq: int, item: SourceFrame) -> Frame:
+    """The wire message of one source frame (JPEG or raw RGB)."""
+    h, w = item.rgb.shape[:2]
+    intrinsics = np.asarray(cfg.intrinsics, np.float64) if cfg.intrinsics else None
+    depth = item.depth if cfg.use_depth else None
+    if cfg.encoding == "jpeg":
+        ok, buf = cv2.imencode(".jpg", cv2.cvtColor(item.rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, cfg.jpeg_quality])
+        if not ok:
+            raise ValueError("JPEG encoding failed")
+        return Frame(cfg.stream, seq, item.t_ns, w, h, jpeg=buf.tobytes(), intrinsics=intrinsics, depth=depth)
+    return Frame(cfg.stream, seq, item.t_ns, w, h, image=item.rgb, intrinsics=intrinsics, depth=depth)
+
+
+class CreditGate:
+    """Thread-safe credit state fed by the ``credit`` subscription (Zenoh thread), read by the send loop."""
+
+    def __init__(self, ttl_s: float):
+        self._ledger = CreditLedger(ttl_s)
+        self._cond = threading.Condition()
+        self.ever_granted = False
+
+    def on_credit(self, delivery: Delivery) -> None:
+        msg = delivery.msg
+        assert isinstance(msg, Credit)
+        with self._cond:
+            self._ledger.grant(msg.consumer or "anonymous", msg.seq, time.monotonic())
+            self.ever_granted = True
+            self._cond.notify_all()
+
+    def limit(self) -> int:
+        with self._cond:
+            return self._ledger.limit(time.monotonic())
+
+    def wait_for(self, seq: int, timeout: float) -> bool:
+        with self._cond:
+            return self._cond.wait_for(lambda: self._ledger.limit(time.monotonic()) >= seq, timeout)
+
+
+def run(cfg: IngestSettings, bus: Bus, stop: threading.Event, source: Source | None = None) -> IngestCounters:
+    """Stream ``cfg.source`` (or ``source``) onto the bus until it ends or ``stop`` is set."""
+    source = source or open_source(cfg.source, fps=cfg.fps, use_depth=cfg.use_depth)
+    gate = CreditGate(cfg.credit_ttl_s)
+    bus.subscribe(keys.topic(cfg.stream, keys.CREDIT), gate.on_credit, expect=[Credit])
+    bus.ready()
+    frame_key = keys.topic(cfg.stream, keys.FRAME)
+    counters, seq, reason = IngestCounters(), -1, "end"
+    lossless = cfg.pacing == "lossless"
+    pace_fps = cfg.fps or source.fps
+    started = time.monotonic()
+    log.info("streaming", extra={"stream": cfg.stream, "source": source.name, "pacing": cfg.pacing})
+
+    for position, item in enumerate(source.frames()):
+        if stop.is_set():
+            reason = "stopped"
+            break
+        if position % cfg.stride:
+            continue
+        if isinstance(item, BadFrame):
+            counters.corrupt += 1
+            log.warning("skipped unreadable frame", extra={"stream": cfg.stream, "index": item.index, "reason": item.reason})
+            continue
+        counters.read += 1
+        seq += 1
+        if not lossless and not source.live and pace_fps:
+            # keep the recording's pace: realtime means the consumer sees the video as if live
+            delay = started + counters.read / pace_fps - time.monotonic()
+            if delay > 0:
+                stop.wait(delay)
+        if not _await_credit(gate, seq, lossless, cfg, stop):
+            reason = "stopped" if stop.is_set() else "error"
+            break
+        if decide(seq, gate.limit(), lossless) is Decision.DROP:
+            counters.dropped += 1
+            continue
+        try:
+            bus.publish(frame_key, frame_message(cfg, seq, item), drop_if_congested=not lossless)
+        except ValueError as exc:
+            counters.corrupt += 1
+            log.warning("could not encode frame", extra={"stream": cfg.stream, "seq": seq, "error": str(exc)})
+            continue
+        counters.sent += 1
+        if cfg.max_frames and counters.sent >= cfg.max_frames:
+            break
+
+    bus.publish(keys.topic(cfg.stream, keys.EOS), Eos(cfg.stream, seq, time.time_ns(), stage="ingest", count=counters.sent, reason=reason))
+    log.info("end of stream", extra={"stream": cfg.stream, "reason": reason, **counters.__dict__})
+    return counters
+
+
+def _await_credit(gate: CreditGate, seq: int, lossless: bool, cfg: IngestSettings, stop: threading.Event) -> bool:
+    """Lossless: block until credit covers ``seq`` (False if stopped or no consumer ever appeared)."""
+    if not lossless:
+        return True
+    waited = 0.0
+    while not gate.wait_for(seq, CREDIT_POLL_S):
+        if stop.is_set():
+            return False
+        waited += CREDIT_POLL_S
+        if not gate.ever_granted and waited > cfg.wait_for_consumer_s:
+            log.error(
+                "no consumer granted credit; is the features service running on this bus? "
+                "(use --pacing realtime to publish without one)",
+                extra={"stream": cfg.stream, "waited_s": round(waited, 1)},
+            )
+            return False
+    return True

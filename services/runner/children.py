@@ -1,0 +1,84 @@
+"""Service processes started by the runner: each is ``python -m services.<name>`` in client mode against the
+runner's private router, with its log in ``<out>/logs/<name>.log``."""
+from __future__ import annotations
+
+import importlib.util
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+# Chain order: each stage consumes what the one before publishes.
+PIPELINE = ("ingest", "features", "ba", "mapstore", "query_api")
+
+
+def is_built(name: str) -> bool:
+    """A service exists once its package has a ``service`` module (later issues fill them in)."""
+    return importlib.util.find_spec(f"services.{name}.service") is not None
+
+
+def free_tcp_endpoint() -> str:
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{sock.getsockname()[1]}"
+
+
+@dataclass
+class Child:
+    name: str
+    process: subprocess.Popen
+    log_path: Path
+    started: float = field(default_factory=time.monotonic)
+
+    def running(self) -> bool:
+        return self.process.poll() is None
+
+    def tail(self, lines: int = 15) -> str:
+        try:
+            return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-lines:])
+        except OSError:
+            return ""
+
+
+def start(name: str, endpoint: str, log_dir: Path, env: dict[str, str]) -> Child:
+    """Start service ``name`` as a child process connected to ``endpoint``."""
+    log_dir.mkdir(parents=True, exist_ok=True)
+    log_path = log_dir / f"{name}.log"
+    child_env = {
+        **os.environ,
+        "KMVIPE_BUS_MODE": "client",
+        "KMVIPE_BUS_CONNECT": json.dumps([endpoint]),
+        "KMVIPE_BUS_LISTEN": "[]",
+        "PYTHONUNBUFFERED": "1",
+        **env,
+    }
+    with open(log_path, "wb") as out:
+        process = subprocess.Popen(
+            [sys.executable, "-m", f"services.{name}"], env=child_env, stdout=out, stderr=subprocess.STDOUT,
+            cwd=Path(__file__).resolve().parents[2],
+        )
+    return Child(name, process, log_path)
+
+
+def stop(children: list[Child], grace_s: float = 10.0) -> None:
+    """SIGTERM every child, wait up to ``grace_s``, then SIGKILL what is left."""
+    for child in children:
+        if child.running():
+            child.process.send_signal(signal.SIGTERM)
+    deadline = time.monotonic() + grace_s
+    for child in children:
+        try:
+            child.process.wait(timeout=max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            log.warning("service did not stop in time; killed", extra={"service": child.name})
+            child.process.kill()
+            child.process.wait()

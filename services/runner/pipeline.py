@@ -1,0 +1,217 @@
+"""``kmvipe run``: every built service as its own process on a private loopback router, the source streamed
+through, a progress bar, and outputs + a summary at end of stream."""
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from tqdm import tqdm
+
+from ..common import keys
+from ..common.bus import Bus, Delivery
+from ..common.config import BusSettings
+from ..common.errors import KmVipeError
+from ..common.schema import Credit, Eos, Frame, Keyframe, Poses
+from . import children as kids
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RunSettings:
+    source: str
+    out: Path
+    stream: str = "cam0"
+    pacing: str = "lossless"
+    encoding: str = "jpeg"
+    intrinsics: tuple[float, float, float, float] | None = None
+    max_frames: int | None = None
+    serve: bool = False
+    credit_window: int = 8  # frames the runner lets ingest run ahead when it is the only consumer
+    alive_timeout_s: float = 120.0  # model loading can take a while on a cold CPU
+    stall_timeout_s: float = 600.0  # no message at all for this long means something hung
+
+
+@dataclass
+class RunReport:
+    source: str
+    stream: str
+    services_ran: list[str]
+    services_not_built: list[str]
+    frames: int = 0
+    keyframes: int = 0
+    posed_frames: int = 0
+    frames_dropped_or_lost: int = 0
+    duration_s: float = 0.0
+    fps: float = 0.0
+    end_reason: str = ""
+    outputs: list[str] = field(default_factory=list)
+
+
+class _Observer:
+    """What the runner sees on the bus (callbacks run on Zenoh threads)."""
+
+    def __init__(self, last_stage: str):
+        self.lock = threading.Lock()
+        self.last_stage = last_stage
+        self.frames = self.keyframes = 0
+        self.last_frame_seq = -1
+        self.poses: dict[int, tuple[int, object]] = {}
+        self.eos: dict[str, Eos] = {}
+        self.done = threading.Event()
+        self.last_activity = time.monotonic()
+
+    def on_message(self, delivery: Delivery) -> None:
+        msg = delivery.msg
+        with self.lock:
+            self.last_activity = time.monotonic()
+            if isinstance(msg, Frame):
+                self.frames += 1
+                self.last_frame_seq = msg.seq
+            elif isinstance(msg, Keyframe):
+                self.keyframes += 1
+            elif isinstance(msg, Poses):
+                for seq, stamp, pose in zip(msg.frame_seqs, msg.stamps_ns, msg.poses):
+                    self.poses[int(seq)] = (int(stamp), pose)
+            elif isinstance(msg, Eos):
+                self.eos[msg.stage] = msg
+                if msg.stage == self.last_stage:
+                    self.done.set()
+
+
+def run_pipeline(cfg: RunSettings) -> RunReport:
+    keys.check_name(cfg.stream)
+    built = [name for name in kids.PIPELINE if kids.is_built(name)]
+    if "ingest" not in built:
+        raise KmVipeError("the ingest service is missing from this installation")
+    streaming = [name for name in built if name != "query_api"]
+    report = RunReport(cfg.source, cfg.stream, built, [n for n in kids.PIPELINE if n not in built])
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    endpoint = kids.free_tcp_endpoint()
+    observer = _Observer(last_stage=streaming[-1])
+    started: list[kids.Child] = []
+    with Bus(BusSettings(mode="router", listen=[endpoint]), "runner") as bus:
+        for topic in (keys.FRAME, keys.KEYFRAME, keys.POSE, keys.EOS):
+            bus.subscribe(keys.topic(cfg.stream, topic), observer.on_message)
+        bus.ready()
+        try:
+            for name in [n for n in built if n != "ingest"]:
+                started.append(kids.start(name, endpoint, cfg.out / "logs", _service_env(name, cfg)))
+            _wait_alive(bus, started, cfg.alive_timeout_s)
+            sink = None if "features" in built else _CreditSink(bus, cfg, observer)
+            begin = time.monotonic()
+            ingest = kids.start("ingest", endpoint, cfg.out / "logs", _service_env("ingest", cfg))
+            started.append(ingest)
+            report.end_reason = _follow(observer, started, ingest, cfg)
+            report.duration_s = time.monotonic() - begin
+            if sink:
+                sink.close()
+            if cfg.serve and "query_api" in built:
+                _serve_until_interrupted(started)
+        finally:
+            kids.stop(started)
+    _fill_report(report, observer)
+    report.outputs = _write_outputs(cfg, report, observer)
+    return report
+
+
+def _service_env(name: str, cfg: RunSettings) -> dict[str, str]:
+    prefix = f"KMVIPE_{name.upper()}_"
+    env = {prefix + "STREAM": cfg.stream, prefix + "OUT_DIR": str(cfg.out)}
+    if name == "ingest":
+        env.update({prefix + "SOURCE": cfg.source, prefix + "PACING": cfg.pacing, prefix + "ENCODING": cfg.encoding})
+        if cfg.intrinsics:
+            env[prefix + "INTRINSICS"] = json.dumps(list(cfg.intrinsics))
+        if cfg.max_frames:
+            env[prefix + "MAX_FRAMES"] = str(cfg.max_frames)
+    return env
+
+
+def _wait_alive(bus: Bus, started: list[kids.Child], timeout_s: float) -> None:
+    """Block until every started service has announced itself on the bus."""
+    deadline = time.monotonic() + timeout_s
+    waiting = {child.name for child in started}
+    while waiting:
+        waiting -= set(bus.alive(timeout=0.5))
+        for child in started:
+            if not child.running():
+                raise KmVipeError(f"service '{child.name}' exited during start-up; its log ends:\n{child.tail()}")
+        if waiting and time.monotonic() > deadline:
+            raise KmVipeError(f"services {sorted(waiting)} did not come up within {timeout_s:.0f} s (logs in {started[0].log_path.parent})")
+
+
+class _CreditSink:
+    """When no features service runs, the runner itself consumes frames and grants credit, so a lossless
+    stream still flows (and is counted) without anything being faked downstream."""
+
+    def __init__(self, bus: Bus, cfg: RunSettings, observer: _Observer):
+        self._bus, self._cfg, self._observer = bus, cfg, observer
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name="credit-sink", daemon=True)
+        self._thread.start()
+
+    def _loop(self) -> None:
+        key = keys.topic(self._cfg.stream, keys.CREDIT)
+        while not self._stop.is_set():
+            with self._observer.lock:
+                limit = self._observer.last_frame_seq + self._cfg.credit_window
+            self._bus.publish(key, Credit(self._cfg.stream, limit, time.time_ns(), consumer="runner"))
+            self._stop.wait(0.02)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
+def _follow(observer: _Observer, started: list[kids.Child], ingest: kids.Child, cfg: RunSettings) -> str:
+    """Show progress until the last stage's end of stream, a dead service, or a stall."""
+    bar = tqdm(desc=f"kmvipe {cfg.stream}", unit="frame", mininterval=0.5, dynamic_ncols=True)
+    begin = time.monotonic()
+    try:
+        while not observer.done.wait(0.25):
+            with observer.lock:
+                bar.n = observer.frames
+                fps = observer.frames / max(time.monotonic() - begin, 1e-6)
+                bar.set_postfix(keyframes=observer.keyframes, fps=f"{fps:.1f}", refresh=False)
+                idle = time.monotonic() - observer.last_activity
+            bar.refresh()
+            dead = [c for c in started if not c.running() and not (c is ingest and c.process.returncode == 0)]
+            if dead:
+                raise KmVipeError(f"service '{dead[0].name}' died (exit {dead[0].process.returncode}); its log ends:\n{dead[0].tail()}")
+            if idle > cfg.stall_timeout_s:
+                return f"stalled: nothing on the bus for {idle:.0f} s"
+        return observer.eos[observer.last_stage].reason
+    finally:
+        bar.n = observer.frames
+        bar.close()
+
+
+def _serve_until_interrupted(started: list[kids.Child]) -> None:
+    print("serving queries; Ctrl-C to stop")
+    try:
+        while all(c.running() for c in started if c.name == "query_api"):
+            time.sleep(0.5)
+    except KeyboardInterrupt:
+        pass
+
+
+def _fill_report(report: RunReport, observer: _Observer) -> None:
+    report.frames = observer.frames
+    report.keyframes = observer.keyframes
+    report.posed_frames = len(observer.poses)
+    ingest_eos = observer.eos.get("ingest")
+    if ingest_eos is not None:
+        report.frames_dropped_or_lost = max(0, ingest_eos.seq + 1 - observer.frames)
+    report.fps = report.frames / report.duration_s if report.duration_s else 0.0
+
+
+def _write_outputs(cfg: RunSettings, report: RunReport, observer: _Observer) -> list[str]:
+    written = []
+    summary = cfg.out / "summary.json"
+    summary.write_text(json.dumps(asdict(report) | {"outputs": written + [str(summary)]}, indent=2, default=str))
+    written.append(str(summary))
+    return written

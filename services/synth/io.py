@@ -1,0 +1,111 @@
+"""Writers (adapters around the pure renderer): a TUM RGB-D style image folder and a video file.
+
+TUM layout written by :func:`write_image_folder`::
+
+    out_dir/rgb/<t>.png       colour, 8-bit
+    out_dir/depth/<t>.png     depth, 16-bit, value = metres × 5000 (TUM's factor), 0 = missing/too far
+    out_dir/rgb.txt           "<t> rgb/<t>.png" per line
+    out_dir/depth.txt         "<t> depth/<t>.png" per line
+    out_dir/groundtruth.txt   "<t> tx ty tz qx qy qz qw": world_from_cam (camera-to-world), Hamilton x y z w
+
+``<t>`` is the timestamp in seconds with 6 decimals (exact integer formatting of t_ns).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from services.synth.render import SynthWorld
+
+log = logging.getLogger(__name__)
+
+TUM_DEPTH_FACTOR = 5000.0  # depth png value per metre, as in the TUM RGB-D benchmark
+VIDEO_FOURCC = {".mp4": "mp4v", ".avi": "MJPG"}
+
+
+def tum_timestamp(t_ns: int) -> str:
+    """Seconds with 6 decimals, e.g. 1500000000 ns -> '1.500000' (exact, no float rounding)."""
+    t_us = int(t_ns) // 1000
+    return f"{t_us // 1_000_000}.{t_us % 1_000_000:06d}"
+
+
+def quaternion_xyzw(rotation: np.ndarray) -> np.ndarray:
+    """Unit quaternion (4,) float64 (qx, qy, qz, qw), qw >= 0, of a rotation matrix (3, 3) (Shepperd)."""
+    r = np.asarray(rotation, np.float64)
+    if r.shape != (3, 3):
+        raise ValueError(f"rotation must be (3, 3), got shape {r.shape}")
+    trace = np.trace(r)
+    if trace > 0:
+        s = 2.0 * np.sqrt(1.0 + trace)
+        q = np.array([(r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, s / 4])
+    else:
+        k = int(np.argmax(np.diag(r)))  # largest diagonal element gives the best-conditioned component
+        i, j = (k + 1) % 3, (k + 2) % 3
+        s = 2.0 * np.sqrt(1.0 + r[k, k] - r[i, i] - r[j, j])
+        q = np.empty(4)
+        q[k] = s / 4
+        q[i] = (r[i, k] + r[k, i]) / s
+        q[j] = (r[j, k] + r[k, j]) / s
+        q[3] = (r[j, i] - r[i, j]) / s
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
+def depth_to_png16(depth: np.ndarray) -> np.ndarray:
+    """Depth (H, W) metres -> (H, W) uint16 at TUM_DEPTH_FACTOR per metre; out-of-range becomes 0 (missing)."""
+    scaled = np.round(np.asarray(depth, np.float64) * TUM_DEPTH_FACTOR)
+    scaled[(scaled > np.iinfo(np.uint16).max) | ~np.isfinite(scaled) | (scaled < 0)] = 0
+    return scaled.astype(np.uint16)
+
+
+def write_image_folder(world: SynthWorld, out_dir: str | Path, n_frames: int | None = None) -> Path:
+    """Render the first ``n_frames`` frames (all when None) into a TUM RGB-D style folder; returns it."""
+    out = Path(out_dir)
+    (out / "rgb").mkdir(parents=True, exist_ok=True)
+    (out / "depth").mkdir(parents=True, exist_ok=True)
+    count = len(world) if n_frames is None else min(int(n_frames), len(world))
+    rgb_lines = ["# color images", "# timestamp filename"]
+    depth_lines = ["# depth maps", f"# timestamp filename (16-bit png, {TUM_DEPTH_FACTOR:g} per metre)"]
+    gt_lines = ["# ground truth trajectory (world_from_cam)", "# timestamp tx ty tz qx qy qz qw"]
+    for i in range(count):
+        frame = world.render(i)
+        stamp = tum_timestamp(frame.t_ns)
+        if not cv2.imwrite(str(out / "rgb" / f"{stamp}.png"), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR)):
+            raise OSError(f"could not write {out / 'rgb' / stamp}.png")
+        if not cv2.imwrite(str(out / "depth" / f"{stamp}.png"), depth_to_png16(frame.depth)):
+            raise OSError(f"could not write {out / 'depth' / stamp}.png")
+        rgb_lines.append(f"{stamp} rgb/{stamp}.png")
+        depth_lines.append(f"{stamp} depth/{stamp}.png")
+        t = frame.world_from_cam[:3, 3]
+        q = quaternion_xyzw(frame.world_from_cam[:3, :3])
+        gt_lines.append(f"{stamp} " + " ".join(f"{x:.9f}" for x in (*t, *q)))
+    for name, lines in (("rgb.txt", rgb_lines), ("depth.txt", depth_lines), ("groundtruth.txt", gt_lines)):
+        (out / name).write_text("\n".join(lines) + "\n")
+    log.info("wrote %d frames to %s", count, out)
+    return out
+
+
+def write_video(world: SynthWorld, path: str | Path, fps: float | None = None, n_frames: int | None = None) -> Path:
+    """Render frames into a video: ``.mp4`` (mp4v) or ``.avi`` (MJPG); fps defaults to the world's."""
+    path = Path(path)
+    fourcc = VIDEO_FOURCC.get(path.suffix.lower())
+    if fourcc is None:
+        raise ValueError(f"video extension must be one of {sorted(VIDEO_FOURCC)}, got {path.suffix!r}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cfg = world.config
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), float(fps or cfg.fps),
+                             (cfg.width, cfg.height))
+    if not writer.isOpened():
+        raise OSError(f"cv2.VideoWriter cannot open {path} with fourcc {fourcc}")
+    count = len(world) if n_frames is None else min(int(n_frames), len(world))
+    try:
+        for i in range(count):
+            writer.write(cv2.cvtColor(world.render(i).rgb, cv2.COLOR_RGB2BGR))
+    finally:
+        writer.release()
+    log.info("wrote %d frames to %s", count, path)
+    return path
