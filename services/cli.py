@@ -22,6 +22,7 @@ def _add_stream_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--intrinsics", type=float, nargs=4, metavar=("FX", "FY", "CX", "CY"),
                    help="optional calibration hint in source pixels (else estimated)")
     p.add_argument("--max-frames", type=int)
+    p.add_argument("--skip", action="append", default=[], metavar="SERVICE", help="a built service not to start")
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
@@ -30,6 +31,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     cfg = RunSettings(
         source=args.source, out=Path(args.out), stream=args.stream, pacing=args.pacing, encoding=args.encoding,
         intrinsics=tuple(args.intrinsics) if args.intrinsics else None, max_frames=args.max_frames, serve=args.serve,
+        skip=tuple(args.skip),
     )
     report = run_pipeline(cfg)
     _print_summary(report)
@@ -113,7 +115,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 # Tools of later stages; each exposes register(subparsers).
-_TOOL_MODULES: list[str] = []
+_TOOL_MODULES = ["services.evaluation.cli", "services.common.models.cli", "services.mapstore.cli"]
 
 
 def main(argv: list[str] | None = None) -> int:

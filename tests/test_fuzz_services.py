@@ -13,7 +13,8 @@ import pytest
 from services.common import keys
 from services.common.bus import Bus
 from services.common.config import BusSettings
-from services.common.schema import Credit, Eos, Frame
+from services.common.errors import ServiceTimeout
+from services.common.schema import Credit, Eos, Frame, Graph, Keyframe, MapStats, PcaBasis, decode
 from tests.conftest import REPO, wait_until
 from tests.helpers.fuzz import bad_payloads
 
@@ -56,3 +57,88 @@ def test_ingest_survives_garbage_on_credit_and_still_streams(unix_endpoint):
     assert [d.msg.seq for d in got[:3]] == [0, 1, 2]
     assert "dropped bad payload" in log  # counted and logged once per kind, not once per payload
     assert log.count("dropped bad payload") < 10
+
+
+def _fuzz_keys(bus: Bus, topics: list[str], stream: str, valid: list[bytes]) -> None:
+    for topic in topics:
+        key = keys.topic(stream, topic)
+        for payload in bad_payloads(valid, N_BAD, seed=hash(topic) % 1000):
+            bus.put(key, payload)
+
+
+def _synthetic_frame(stream: str, seq: int) -> Frame:
+    from services.synth import SynthConfig, SynthWorld
+
+    frame = SynthWorld(SynthConfig(n_frames=2, width=128, height=96)).render(seq)
+    return Frame(stream, seq, int(frame.t_ns), 128, 96, image=frame.rgb)
+
+
+@pytest.mark.slow
+def test_features_survives_garbage_and_still_makes_a_keyframe(unix_endpoint):
+    stream = "fuzzf"
+    with Bus(BusSettings(mode="peer", listen=[unix_endpoint]), "ba", "fuzzer") as bus:
+        out = bus.inbox({keys.topic(stream, keys.KEYFRAME): [Keyframe], keys.topic(stream, keys.PCA): [PcaBasis]})
+        features = _start_service("features", unix_endpoint, {
+            "KMVIPE_FEATURES_STREAM": stream, "KMVIPE_FEATURES_PCA_FIT_KEYFRAMES": "1",
+            "KMVIPE_FEATURES_PCA_COMPONENTS": "8"})
+        try:
+            wait_until(lambda: "features" in bus.alive(timeout=0.2) or features.poll() is not None, 120, "features up")
+            # bases for flips: kinds that are wrong on these keys, so a flipped byte never makes a valid message
+            valid = [Credit(stream, 5, 0).encode(), Eos(stream, 1, 0, stage="nobody").encode()]
+            _fuzz_keys(bus, [keys.FRAME, keys.INTRINSICS, keys.EOS], stream, valid)
+            assert features.poll() is None, "features died of bad payloads"
+            bus.publish(keys.topic(stream, keys.FRAME), _synthetic_frame(stream, 0))
+            got = {type(out.get(timeout=60).msg) for _ in range(2)}
+        finally:
+            features.terminate()
+            _, log = features.communicate(timeout=30)
+    assert got == {Keyframe, PcaBasis}, log
+    assert "dropped bad payload" in log and log.count("dropped bad payload") < 20
+
+
+@pytest.mark.slow
+def test_mapstore_survives_garbage_and_still_stores_a_keyframe(unix_endpoint, tmp_path):
+    import numpy as np
+
+    stream = "fuzzm"
+    with Bus(BusSettings(mode="peer", listen=[unix_endpoint]), "features", "fuzzer") as bus:
+        mapstore = _start_service("mapstore", unix_endpoint, {
+            "KMVIPE_MAPSTORE_STREAM": stream, "KMVIPE_MAPSTORE_DB_PATH": str(tmp_path / "map.db"),
+            "KMVIPE_MAPSTORE_DEVICE": "cpu"})
+        try:
+            wait_until(lambda: "mapstore" in bus.alive(timeout=0.2) or mapstore.poll() is not None, 60, "mapstore up")
+            valid = [Credit(stream, 5, 0).encode(), Frame(stream, 0, 0, 2, 1, jpeg=b"\xff\xd8").encode()]
+            _fuzz_keys(bus, [keys.KEYFRAME, keys.PCA, keys.GRAPH, keys.EOS], stream, valid)
+            assert mapstore.poll() is None, "mapstore died of bad payloads"
+            rng = np.random.default_rng(0)
+            k = np.array([100.0, 100.0, 63.5, 47.5])
+            bus.publish(keys.topic(stream, keys.PCA), PcaBasis(stream, 1, 0, version=1, backbone="test",
+                        mean=np.zeros(16, np.float32), components=np.eye(4, 16, dtype=np.float32)))
+            bus.publish(keys.topic(stream, keys.KEYFRAME), Keyframe(
+                stream, 0, 0, image=rng.integers(0, 255, (96, 128, 3), dtype=np.uint8), intrinsics=k, pca_version=1,
+                codes=rng.normal(size=(12, 16, 4)).astype(np.float16)))
+            bus.publish(keys.topic(stream, keys.GRAPH), Graph(
+                stream, 0, 0, kf_seqs=np.array([0]), poses=np.eye(4)[None], intrinsics=k, width=128, height=96,
+                updated_seqs=np.array([0]), disparities=np.full((1, 12, 16), 0.5, np.float32)))
+
+            last = []
+
+            def stored() -> bool:
+                try:
+                    stats = decode(bus.request(keys.map_key(stream, "stats"), timeout=1.0), MapStats)
+                except (ServiceTimeout, RuntimeError) as exc:
+                    last[:] = [exc]
+                    return False
+                last[:] = [stats]
+                return stats.keyframes == 1 and stats.points > 0
+
+            deadline = time.monotonic() + 60
+            ok = stored()
+            while not ok and time.monotonic() < deadline:
+                time.sleep(0.1)
+                ok = stored()
+        finally:
+            mapstore.terminate()
+            _, log = mapstore.communicate(timeout=30)
+    assert ok, f"the valid keyframe was not stored and queryable within 60 s ({last}); mapstore log:\n{log[-3000:]}"
+    assert "dropped bad payload" in log and log.count("dropped bad payload") < 20

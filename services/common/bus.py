@@ -32,6 +32,10 @@ def zenoh_config(settings: BusSettings) -> zenoh.Config:
         conf.insert_json5("connect/endpoints", json.dumps(settings.connect))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
     conf.insert_json5("transport/shared_memory/enabled", json.dumps(settings.shared_memory))
+    if settings.shared_memory:  # the pool is made at session start, so the first frames use it too
+        conf.insert_json5("transport/shared_memory/mode", json.dumps("init"))
+        conf.insert_json5("transport/shared_memory/transport_optimization/pool_size",
+                          json.dumps(settings.shm_pool_mib << 20))
     return conf
 
 

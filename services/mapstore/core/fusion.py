@@ -1,0 +1,171 @@
+"""Incremental voxel fusion: weighted sums per voxel that keyframes add to and subtract from.
+
+Each keyframe's contribution (its voxel keys and per-voxel sums) is kept, so a keyframe whose pose or
+depth changed is re-fused by subtracting its old contribution and adding the new one; nothing else is
+touched. Sums are float64 (positions, weights) and float32 (codes, colours); a voxel whose
+observation count drops to zero is cleared exactly, so rounding does not accumulate in empty voxels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+_KEY_BITS = 21
+_KEY_OFFSET = 1 << (_KEY_BITS - 1)
+_KEY_MASK = (1 << _KEY_BITS) - 1
+
+
+def voxel_keys(ijk: np.ndarray) -> np.ndarray:
+    """Pack integer voxel coordinates (N, 3) int64 (each in ±2^20) into (N,) int64 keys."""
+    shifted = ijk.astype(np.int64) + _KEY_OFFSET
+    if shifted.size and (shifted.min() < 0 or shifted.max() > _KEY_MASK):
+        raise ValueError("voxel coordinates exceed ±2^20; use a larger voxel size")
+    return (shifted[:, 0] << (2 * _KEY_BITS)) | (shifted[:, 1] << _KEY_BITS) | shifted[:, 2]
+
+
+def voxel_coords(keys: np.ndarray) -> np.ndarray:
+    """Inverse of `voxel_keys`: (N,) int64 keys → (N, 3) int64 voxel coordinates."""
+    k = keys.astype(np.int64)
+    ijk = np.stack([(k >> (2 * _KEY_BITS)) & _KEY_MASK, (k >> _KEY_BITS) & _KEY_MASK, k & _KEY_MASK], axis=1)
+    return ijk - _KEY_OFFSET
+
+
+@dataclass(frozen=True)
+class Contribution:
+    """One keyframe's per-voxel sums (M distinct voxels).
+
+    Fields: keys (M,) int64; weight (M,) float64 Σw; xyz (M, 3) float64 Σw·x (world);
+    codes (M, K) float32 Σw·z; colours (M, 3) float32 Σw·rgb; count (M,) int64 points.
+    """
+
+    keys: np.ndarray
+    weight: np.ndarray
+    xyz: np.ndarray
+    codes: np.ndarray
+    colours: np.ndarray
+    count: np.ndarray
+
+
+def make_contribution(
+    points_world: np.ndarray, weight: np.ndarray, codes: np.ndarray, colours: np.ndarray, voxel_size: float
+) -> Contribution:
+    """Sum one keyframe's points per voxel.
+
+    Args:
+        points_world: (M, 3) float64 world points.
+        weight: (M,) float point weights (> 0).
+        codes: (M, K) float codes; colours: (M, 3) uint8/float RGB.
+        voxel_size: voxel edge in world units.
+    Returns:
+        Contribution over the distinct voxels the points fall in.
+    """
+    n = points_world.shape[0]
+    if weight.shape != (n,) or codes.shape[0] != n or colours.shape != (n, 3):
+        raise ValueError("points, weight, codes and colours must have the same length")
+    keys = voxel_keys(np.floor(points_world / voxel_size).astype(np.int64))
+    order = np.argsort(keys, kind="stable")
+    sk = keys[order]
+    starts = np.flatnonzero(np.r_[True, sk[1:] != sk[:-1]]) if n else np.zeros(0, np.int64)
+    w = weight.astype(np.float64)[order]
+
+    def wsum(values: np.ndarray, dtype: type) -> np.ndarray:
+        if n == 0:
+            return np.zeros((0,) + values.shape[1:], dtype)
+        return np.add.reduceat((values[order] * w[:, None]).astype(dtype), starts, axis=0)
+
+    return Contribution(
+        keys=sk[starts],
+        weight=np.add.reduceat(w, starts) if n else np.zeros(0),
+        xyz=wsum(points_world.astype(np.float64), np.float64),
+        codes=wsum(codes.astype(np.float32), np.float32),
+        colours=wsum(colours.astype(np.float32), np.float32),
+        count=np.diff(np.r_[starts, n]).astype(np.int64),
+    )
+
+
+class FusedVoxels(NamedTuple):
+    """The fused map: one point per occupied voxel (N voxels)."""
+
+    keys: np.ndarray  # (N,) int64 voxel keys
+    ijk: np.ndarray  # (N, 3) int64 voxel coordinates
+    xyz: np.ndarray  # (N, 3) float64 weighted mean world position
+    codes: np.ndarray  # (N, K) float32 weighted mean code
+    colours: np.ndarray  # (N, 3) uint8 weighted mean RGB
+    weight: np.ndarray  # (N,) float64 summed weight
+    count: np.ndarray  # (N,) int64 points fused
+
+
+class VoxelGrid:
+    """Slot-based accumulators for voxel sums, keyed by packed voxel coordinates."""
+
+    def __init__(self, code_dim: int, initial_capacity: int = 4096) -> None:
+        self.code_dim = code_dim
+        self._slot_of: dict[int, int] = {}
+        self._free: list[int] = []
+        self._used = 0
+        self._alloc(initial_capacity)
+
+    def _alloc(self, cap: int) -> None:
+        old = getattr(self, "_weight", None)
+        fields = {"_keys": ((cap,), np.int64), "_weight": ((cap,), np.float64), "_xyz": ((cap, 3), np.float64),
+                  "_codes": ((cap, self.code_dim), np.float32), "_colours": ((cap, 3), np.float32),
+                  "_count": ((cap,), np.int64)}
+        for name, (shape, dtype) in fields.items():
+            arr = np.zeros(shape, dtype)
+            if old is not None:
+                prev = getattr(self, name)
+                arr[: prev.shape[0]] = prev
+            setattr(self, name, arr)
+
+    def _slots(self, keys: np.ndarray) -> np.ndarray:
+        """Slots of `keys`, creating the missing ones."""
+        slots = np.empty(keys.shape[0], np.int64)
+        for i, key in enumerate(keys.tolist()):
+            slot = self._slot_of.get(key)
+            if slot is None:
+                slot = self._free.pop() if self._free else self._new_slot()
+                self._slot_of[key] = slot
+                self._keys[slot] = key
+            slots[i] = slot
+        return slots
+
+    def _new_slot(self) -> int:
+        if self._used == self._keys.shape[0]:
+            self._alloc(2 * self._keys.shape[0])
+        self._used += 1
+        return self._used - 1
+
+    def apply(self, c: Contribution, sign: int) -> None:
+        """Add (sign=+1) or subtract (sign=−1) a keyframe's contribution."""
+        if c.codes.shape[1:] != (self.code_dim,) and c.keys.size:
+            raise ValueError(f"codes have {c.codes.shape[1]} channels, map has {self.code_dim}")
+        slots = self._slots(c.keys)  # keys are distinct within a contribution: plain fancy indexing
+        self._weight[slots] += sign * c.weight
+        self._xyz[slots] += sign * c.xyz
+        self._codes[slots] += sign * c.codes
+        self._colours[slots] += sign * c.colours
+        self._count[slots] += sign * c.count
+        empty = slots[self._count[slots] <= 0]
+        for slot in empty.tolist():
+            del self._slot_of[int(self._keys[slot])]
+            self._free.append(slot)
+        for arr in (self._weight, self._xyz, self._codes, self._colours, self._count):
+            arr[empty] = 0
+
+    def __len__(self) -> int:
+        return len(self._slot_of)
+
+    def fused(self) -> FusedVoxels:
+        """Weighted means of every occupied voxel, sorted by key (deterministic order)."""
+        slots = np.fromiter(self._slot_of.values(), np.int64, len(self._slot_of))
+        slots = slots[np.argsort(self._keys[slots], kind="stable")]
+        w = self._weight[slots]
+        inv = np.where(w > 0, 1.0 / np.where(w > 0, w, 1.0), 0.0)
+        colours = np.clip(np.rint(self._colours[slots] * inv[:, None]), 0, 255).astype(np.uint8)
+        keys = self._keys[slots]
+        return FusedVoxels(keys, voxel_coords(keys), self._xyz[slots] * inv[:, None],
+                           (self._codes[slots] * inv[:, None]).astype(np.float32), colours, w,
+                           self._count[slots].copy())

@@ -1,0 +1,183 @@
+"""The keyframe-anchored map: keyframes (codes, colours, depth, pose) and their voxel fusion.
+
+Keyframes whose pose or depth changed — and their consistency neighbours, whose check depends on
+them — are marked dirty; `refresh()` re-fuses exactly those by subtracting their old contribution and
+adding the new one.
+"""
+
+from __future__ import annotations
+
+import logging
+from bisect import bisect_left
+from typing import NamedTuple
+
+import numpy as np
+
+from services.mapstore.config import MapParams
+from services.mapstore.core.consistency import NeighbourView, depth_consistency
+from services.mapstore.core.fusion import Contribution, FusedVoxels, VoxelGrid, make_contribution
+from services.mapstore.core.keyframe import KeyframeContent, KeyframeDepth, candidate_points, world_points
+
+log = logging.getLogger(__name__)
+
+
+class KeyframePoints(NamedTuple):
+    """The points one keyframe contributes to the map (M points)."""
+
+    cells: np.ndarray  # (M,) int64 flat grid cell index r·w + c
+    xyz: np.ndarray  # (M, 3) float64 world coordinates under the keyframe's latest pose
+    weight: np.ndarray  # (M,) float64 confidence × static × consistency
+    codes: np.ndarray  # (M, K) float16
+    colours: np.ndarray  # (M, 3) uint8
+
+
+class RefreshReport(NamedTuple):
+    """What one `refresh()` did."""
+
+    refreshed: list[int]  # keyframe ids re-fused
+    voxels: int  # occupied voxels afterwards
+
+
+class KeyframeMap:
+    """Mutable map state; no I/O. Feed it keyframe content, depths and poses, then `refresh()`."""
+
+    def __init__(self, params: MapParams, voxel_size: float | None = None) -> None:
+        """
+        Args:
+            params: the map parameters.
+            voxel_size: fixed voxel edge in world units; None derives it from params.fusion
+                (absolute, or relative to the median depth of the first fused keyframe).
+        """
+        self.params = params
+        self.contents: dict[int, KeyframeContent] = {}
+        self.depths: dict[int, KeyframeDepth] = {}
+        self.poses: dict[int, np.ndarray] = {}
+        self.voxel_size = voxel_size
+        if voxel_size is None and params.fusion.voxel_mode == "absolute":
+            self.voxel_size = params.fusion.voxel_size
+        self._grid: VoxelGrid | None = None
+        self._contrib: dict[int, Contribution] = {}
+        self._dirty: set[int] = set()
+        self._ready: list[int] = []  # sorted ids with content, depth and pose
+        self._fused_cache: FusedVoxels | None = None
+        self.revision = 0
+
+    # ----- inputs -------------------------------------------------------------------------
+    def add_content(self, content: KeyframeContent) -> None:
+        """Add or replace a keyframe's codes and colours."""
+        self.contents[content.kf_id] = content
+        self._touch(content.kf_id)
+
+    def set_depth(self, kf_id: int, depth: KeyframeDepth) -> None:
+        """Set a keyframe's latest disparity/weights (its grid must match its codes' grid)."""
+        self.depths[kf_id] = depth
+        self._touch(kf_id)
+
+    def set_pose(self, kf_id: int, world_from_cam: np.ndarray) -> None:
+        """Set a keyframe's latest (4, 4) float64 world_from_cam; an unchanged pose is a no-op."""
+        pose = np.asarray(world_from_cam, dtype=np.float64)
+        if pose.shape != (4, 4):
+            raise ValueError(f"world_from_cam must be (4, 4), got {pose.shape}")
+        old = self.poses.get(kf_id)
+        if old is not None and np.array_equal(old, pose):
+            return
+        self.poses[kf_id] = pose.copy()
+        self._touch(kf_id)
+
+    def remove(self, kf_id: int) -> None:
+        """Forget a keyframe and take its points out of the map at the next refresh."""
+        for table in (self.contents, self.depths, self.poses):
+            table.pop(kf_id, None)
+        self._touch(kf_id)
+
+    def _is_ready(self, kf_id: int) -> bool:
+        c, d = self.contents.get(kf_id), self.depths.get(kf_id)
+        return c is not None and d is not None and kf_id in self.poses and c.codes.shape[:2] == d.disparity.shape
+
+    def _touch(self, kf_id: int) -> None:
+        """Mark a keyframe and its consistency neighbours dirty; keep the ready list sorted."""
+        pos = bisect_left(self._ready, kf_id)
+        present = pos < len(self._ready) and self._ready[pos] == kf_id
+        if self._is_ready(kf_id) and not present:
+            self._ready.insert(pos, kf_id)
+        elif not self._is_ready(kf_id) and present:
+            self._ready.pop(pos)
+        self._dirty.add(kf_id)
+        self._dirty.update(self._neighbours(kf_id))
+
+    def _neighbours(self, kf_id: int) -> list[int]:
+        n = self.params.consistency.neighbours
+        pos = bisect_left(self._ready, kf_id)
+        after = pos + 1 if pos < len(self._ready) and self._ready[pos] == kf_id else pos
+        return self._ready[max(0, pos - n) : pos] + self._ready[after : after + n]
+
+    # ----- fusion -------------------------------------------------------------------------
+    @property
+    def dirty(self) -> set[int]:
+        """Keyframe ids waiting to be re-fused."""
+        return set(self._dirty)
+
+    def keyframe_points(self, kf_id: int) -> KeyframePoints:
+        """The points keyframe `kf_id` contributes under its latest pose, depth and neighbours."""
+        content, depth = self.contents[kf_id], self.depths[kf_id]
+        pose = self.poses[kf_id]
+        cand = candidate_points(depth, self.params.points)
+        xyz = world_points(cand.points_cam, pose)
+        views = [NeighbourView(np.linalg.inv(self.poses[j]), self.depths[j].disparity, self.depths[j].intrinsics)
+                 for j in self._neighbours(kf_id)]
+        weight = cand.base_weight * depth_consistency(xyz, views, self.params.consistency)
+        keep = weight >= self.params.points.min_weight
+        cells = cand.cells[keep]
+        k = content.codes.shape[2]
+        return KeyframePoints(cells, xyz[keep], weight[keep], content.codes.reshape(-1, k)[cells],
+                              content.colours.reshape(-1, 3)[cells])
+
+    def _ensure_voxel_size(self, first_kf: int) -> None:
+        if self.voxel_size is not None:
+            return
+        cand = candidate_points(self.depths[first_kf], self.params.points)
+        median = float(np.median(cand.points_cam[:, 2])) if len(cand.cells) else 1.0
+        self.voxel_size = self.params.fusion.voxel_size * median
+        log.info("voxel size %.4g = %.3g x median depth %.4g of keyframe %d",
+                 self.voxel_size, self.params.fusion.voxel_size, median, first_kf)
+
+    def refresh(self) -> RefreshReport:
+        """Re-fuse every dirty keyframe (subtract its old contribution, add the new one)."""
+        dirty = sorted(self._dirty)
+        self._dirty.clear()
+        for kf_id in dirty:
+            old = self._contrib.pop(kf_id, None)
+            if old is not None:
+                self._grid.apply(old, -1)
+            if not self._is_ready(kf_id):
+                continue
+            self._ensure_voxel_size(kf_id)
+            pts = self.keyframe_points(kf_id)
+            if self._grid is None:
+                self._grid = VoxelGrid(pts.codes.shape[1])
+            contribution = make_contribution(pts.xyz, pts.weight, pts.codes, pts.colours, self.voxel_size)
+            self._grid.apply(contribution, +1)
+            self._contrib[kf_id] = contribution
+        if dirty:
+            self.revision += 1
+            self._fused_cache = None
+        return RefreshReport(dirty, len(self._grid) if self._grid is not None else 0)
+
+    def fused(self) -> FusedVoxels:
+        """The fused map (one point per occupied voxel), cached until the next change."""
+        if self._fused_cache is None:
+            if self._grid is None:
+                k = next(iter(self.contents.values())).codes.shape[2] if self.contents else 0
+                self._fused_cache = VoxelGrid(k, 1).fused()
+            else:
+                self._fused_cache = self._grid.fused()
+        return self._fused_cache
+
+    def rebuild(self, voxel_size: float | None = None) -> RefreshReport:
+        """Drop all fusion state and re-fuse every keyframe (e.g. after a scale change)."""
+        self.voxel_size = voxel_size
+        if voxel_size is None and self.params.fusion.voxel_mode == "absolute":
+            self.voxel_size = self.params.fusion.voxel_size
+        self._grid, self._contrib = None, {}
+        self._dirty = set(self.contents) | set(self.depths) | set(self.poses)
+        return self.refresh()

@@ -1,0 +1,103 @@
+"""Regions: connected components of voxels whose score is above a threshold."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from itertools import product
+
+import numpy as np
+
+from services.mapstore.config import RegionParams
+from services.mapstore.core.fusion import voxel_keys
+
+
+@dataclass(frozen=True)
+class Region:
+    """A connected set of high-scoring voxels.
+
+    Fields: centroid (3,) float64 world (mean of the voxel points); box_min, box_max (3,)
+    float64 axis-aligned bounds of the voxel points; score: mean score; score_max: best score;
+    count: number of voxels; indices: (count,) int64 indices into the scored point arrays.
+    """
+
+    centroid: np.ndarray
+    box_min: np.ndarray
+    box_max: np.ndarray
+    score: float
+    score_max: float
+    count: int
+    indices: np.ndarray
+
+
+def _offsets(connectivity: int) -> np.ndarray:
+    """Half of the neighbour offsets (the other half is symmetric), (n, 3) int64."""
+    all_offsets = [o for o in product((-1, 0, 1), repeat=3) if any(o)]
+    if connectivity == 6:
+        all_offsets = [o for o in all_offsets if sum(map(abs, o)) == 1]
+    elif connectivity != 26:
+        raise ValueError(f"connectivity must be 6 or 26, got {connectivity}")
+    return np.array([o for o in all_offsets if o > (0, 0, 0)], dtype=np.int64)
+
+
+def connected_components(ijk: np.ndarray, connectivity: int = 26) -> np.ndarray:
+    """Label connected voxels.
+
+    Args:
+        ijk: (N, 3) int64 distinct voxel coordinates.
+        connectivity: 6 or 26.
+    Returns:
+        (N,) int64 component label per voxel, labels 0..C−1.
+    """
+    n = ijk.shape[0]
+    keys = voxel_keys(ijk)
+    order = np.argsort(keys)
+    sorted_keys = keys[order]
+    src, dst = [], []
+    for off in _offsets(connectivity):
+        nk = voxel_keys(ijk + off)
+        pos = np.clip(np.searchsorted(sorted_keys, nk), 0, max(n - 1, 0))
+        hit = np.flatnonzero(sorted_keys[pos] == nk) if n else np.zeros(0, np.int64)
+        src.append(hit)
+        dst.append(order[pos[hit]])
+    a = np.concatenate(src) if src else np.zeros(0, np.int64)
+    b = np.concatenate(dst) if dst else np.zeros(0, np.int64)
+    label = np.arange(n)
+    while True:  # min-label propagation with pointer jumping; converges in O(log diameter) rounds
+        prev = label.copy()
+        m = np.minimum(label[a], label[b])
+        np.minimum.at(label, a, m)
+        np.minimum.at(label, b, m)
+        label = label[label]
+        if np.array_equal(label, prev):
+            break
+    return np.unique(label, return_inverse=True)[1].astype(np.int64)
+
+
+def find_regions(
+    ijk: np.ndarray, xyz: np.ndarray, scores: np.ndarray, params: RegionParams
+) -> list[Region]:
+    """Cluster voxels scoring at least `params.score_threshold` into connected regions.
+
+    Args:
+        ijk: (N, 3) int64 voxel coordinates of the map points.
+        xyz: (N, 3) float world positions of the map points.
+        scores: (N,) float scores of one query.
+        params: threshold, connectivity, minimum size, maximum number.
+    Returns:
+        Regions sorted by mean score, best first (at most params.max_regions).
+    """
+    if not (ijk.shape[0] == xyz.shape[0] == scores.shape[0]):
+        raise ValueError("ijk, xyz and scores must have the same length")
+    sel = np.flatnonzero(scores >= params.score_threshold)
+    labels = connected_components(ijk[sel], params.connectivity)
+    regions = []
+    by_label = np.argsort(labels, kind="stable")
+    bounds = np.flatnonzero(np.diff(labels[by_label])) + 1
+    for members in np.split(by_label, bounds) if labels.size else []:
+        idx = sel[members]
+        if idx.size < params.min_voxels:
+            continue
+        p, s = xyz[idx], scores[idx]
+        regions.append(Region(p.mean(0), p.min(0), p.max(0), float(s.mean()), float(s.max()), int(idx.size), idx))
+    regions.sort(key=lambda r: -r.score)
+    return regions[: params.max_regions]

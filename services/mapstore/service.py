@@ -1,0 +1,119 @@
+"""Mapstore service: keyframe / pca / graph / eos in, queryables on ``kmvipe/<s>/map/**`` out.
+
+One handler per message kind (`handle_<kind>(state, msg, cfg)`); `run` only receives, handles and serves.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from services.common import keys
+from services.common.bus import Bus
+from services.common.errors import DecodeError, ServiceTimeout
+from services.common.schema import Eos, Graph, Keyframe, Message, PcaBasis as PcaMessage, decode
+from services.mapstore import queries
+from services.mapstore.config import MapstoreSettings
+from services.mapstore.core.keyframe import KeyframeDepth
+from services.mapstore.core.scoring import PcaBasis
+from services.mapstore.export import ColmapImage, export_all
+from services.mapstore.state import MapState
+
+log = logging.getLogger(__name__)
+POLL_S = 0.1
+PCA_FETCH_TIMEOUT_S = 1.0
+
+
+def handle_keyframe(state: MapState, msg: Keyframe, cfg: MapstoreSettings) -> None:
+    if msg.codes is None:
+        log.info("keyframe without codes ignored", extra={"stream": msg.stream, "seq": msg.seq})
+        return
+    state.add_keyframe(msg.seq, msg.t_ns, msg.image, msg.codes, msg.intrinsics, msg.pca_version)
+
+
+def handle_pca(state: MapState, msg: PcaMessage, cfg: MapstoreSettings) -> None:
+    state.add_basis(PcaBasis(msg.version, np.array(msg.mean), np.array(msg.components), msg.backbone))
+
+
+def handle_graph(state: MapState, msg: Graph, cfg: MapstoreSettings) -> None:
+    poses = {int(k): np.array(p) for k, p in zip(msg.kf_seqs, msg.poses)}
+    depths = {}
+    for i, kf_id in enumerate(msg.updated_seqs.tolist()):
+        if msg.disparities is None:
+            break
+        depths[kf_id] = KeyframeDepth(
+            np.array(msg.disparities[i]), np.array(msg.intrinsics),
+            None if msg.static_weights is None else np.array(msg.static_weights[i]),
+            None if msg.confidence is None else np.array(msg.confidence[i]))
+    refreshed = state.update_graph(poses, depths, msg.metric)
+    log.debug("graph applied", extra={"stream": msg.stream, "seq": msg.seq, "keyframes_refreshed": refreshed})
+
+
+def handle_eos(state: MapState, msg: Eos, cfg: MapstoreSettings) -> list[tuple[str, Message]]:
+    """Upstream's end of stream: export the map, then forward the EOS (the runner waits for it)."""
+    if msg.stage != cfg.upstream:
+        return []
+    log.info("end of stream", extra={"stream": msg.stream, "seq": msg.seq, "stage": msg.stage})
+    if cfg.export_dir:
+        export_state(state, Path(cfg.export_dir))
+    with state.lock:
+        count = len(state.map.contents)
+    return [(keys.topic(msg.stream, keys.EOS), Eos(msg.stream, msg.seq, time.time_ns(), stage="mapstore", count=count))]
+
+
+def export_state(state: MapState, out: Path):
+    """Write map.ply, depth maps, COLMAP cameras and keyframe images of the current map to `out`."""
+    with state.lock:
+        fused = state.map.fused()
+        depths = {k: d for k, d in state.map.depths.items() if k in state.map.poses and k in state.map.contents}
+        cams = {}
+        for k in depths:
+            h, w = state.map.contents[k].image_hw
+            cams[k] = ColmapImage(f"{k:06d}.jpg", state.map.poses[k], np.asarray(depths[k].intrinsics), (w, h))
+        jpegs = {k: state.store.image(k) for k in cams}
+        return export_all(out, fused.xyz, fused.colours, depths, cams, state.metric,
+                          {k: v for k, v in jpegs.items() if v is not None})
+
+
+HANDLERS = {Keyframe: handle_keyframe, PcaMessage: handle_pca, Graph: handle_graph, Eos: handle_eos}
+
+
+def handle(state: MapState, msg: Message, cfg: MapstoreSettings) -> list[tuple[str, Message]]:
+    """The error boundary of one message: bad input is logged with its seq and the loop goes on.
+    Returns the messages to publish."""
+    try:
+        return HANDLERS[type(msg)](state, msg, cfg) or []
+    except (ValueError, KeyError, LookupError) as exc:
+        log.warning("message rejected", extra={"stream": msg.stream, "seq": msg.seq, "kind": msg.KIND,
+                                               "error": str(exc)})
+        return []
+
+
+def _fetch_current_basis(state: MapState, bus: Bus, cfg: MapstoreSettings) -> None:
+    """A (re)started mapstore asks features for the PCA basis it may have missed while down."""
+    try:
+        reply = bus.request(keys.topic(cfg.stream, keys.PCA), timeout=PCA_FETCH_TIMEOUT_S, service="features")
+        handle(state, decode(reply, PcaMessage), cfg)
+    except (ServiceTimeout, RuntimeError, DecodeError) as exc:
+        log.info("no PCA basis from features yet (it will come on the pca topic)", extra={"reason": str(exc)})
+
+
+def run(cfg: MapstoreSettings, bus: Bus, stop: threading.Event, state: MapState | None = None) -> MapState:
+    """Serve the map of `cfg.stream` until `stop` is set."""
+    state = state or MapState(cfg)
+    inbox = bus.inbox({keys.topic(cfg.stream, keys.KEYFRAME): [Keyframe], keys.topic(cfg.stream, keys.PCA): [PcaMessage],
+                       keys.topic(cfg.stream, keys.GRAPH): [Graph], keys.topic(cfg.stream, keys.EOS): [Eos]})
+    bus.serve(keys.map_key(cfg.stream, "**"), lambda key, params, payload: queries.answer(state, cfg.stream, key, params, payload))
+    bus.ready()
+    _fetch_current_basis(state, bus, cfg)
+    log.info("mapstore serving", extra={"stream": cfg.stream})
+    while not stop.is_set():
+        delivery = inbox.get(POLL_S)
+        if delivery is not None:
+            for key, out in handle(state, delivery.msg, cfg):
+                bus.publish(key, out)
+    return state

@@ -1,0 +1,207 @@
+"""Durable map store: SQLite in WAL mode, one row per keyframe, arrays as .npy blobs.
+
+Why SQLite/WAL: one file, atomic multi-row transactions (a graph update of many poses and depths
+commits all or nothing), readers never block the writer, and a killed process loses nothing that was
+committed. A keyframe is acknowledged (and applied to the in-memory map) only after its transaction
+commits, so what queries see is always a subset of what a restart reloads.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import sqlite3
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from services.mapstore.core.keyframe import KeyframeContent, KeyframeDepth
+from services.mapstore.core.scoring import PcaBasis
+
+log = logging.getLogger(__name__)
+
+MIGRATIONS: list[str] = [
+    # 1: keyframes, their latest geometry and pose, PCA bases, free-form metadata
+    """
+    CREATE TABLE keyframes (kf_id INTEGER PRIMARY KEY, t_ns INTEGER NOT NULL, pca_version INTEGER NOT NULL,
+        height INTEGER NOT NULL, width INTEGER NOT NULL, codes BLOB NOT NULL, colours BLOB NOT NULL);
+    CREATE TABLE depths (kf_id INTEGER PRIMARY KEY, intrinsics BLOB NOT NULL, disparity BLOB NOT NULL,
+        static_weight BLOB, confidence BLOB, revision INTEGER NOT NULL DEFAULT 0);
+    CREATE TABLE poses (kf_id INTEGER PRIMARY KEY, world_from_cam BLOB NOT NULL, revision INTEGER NOT NULL DEFAULT 0);
+    CREATE TABLE pca (version INTEGER PRIMARY KEY, backbone TEXT NOT NULL, mean BLOB NOT NULL,
+        components BLOB NOT NULL);
+    CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+    """,
+    # 2: working-resolution images (JPEG) for exports, and the camera intrinsics the keyframe came with
+    """
+    CREATE TABLE images (kf_id INTEGER PRIMARY KEY, jpeg BLOB NOT NULL);
+    ALTER TABLE keyframes ADD COLUMN intrinsics BLOB;
+    """,
+]
+SCHEMA_VERSION = len(MIGRATIONS)
+
+
+def to_blob(array: np.ndarray | None) -> bytes | None:
+    """Serialise an array (dtype and shape included) as .npy bytes; None stays None."""
+    if array is None:
+        return None
+    buf = io.BytesIO()
+    np.save(buf, np.ascontiguousarray(array), allow_pickle=False)
+    return buf.getvalue()
+
+
+def from_blob(blob: bytes | None) -> np.ndarray | None:
+    """Inverse of `to_blob`."""
+    return None if blob is None else np.load(io.BytesIO(blob), allow_pickle=False)
+
+
+def schema_version(conn: sqlite3.Connection) -> int:
+    """The schema version of an open database (0 for an empty one)."""
+    conn.execute("CREATE TABLE IF NOT EXISTS schema_version (version INTEGER NOT NULL)")
+    row = conn.execute("SELECT MAX(version) FROM schema_version").fetchone()
+    return int(row[0] or 0)
+
+
+def migrate(conn: sqlite3.Connection, target: int = SCHEMA_VERSION) -> int:
+    """Apply the missing migrations up to `target`, each in its own transaction; returns the version."""
+    current = schema_version(conn)
+    if current > SCHEMA_VERSION:
+        raise RuntimeError(f"map database has schema {current}, newer than this code ({SCHEMA_VERSION})")
+    for version in range(current + 1, target + 1):
+        with conn:
+            conn.execute("BEGIN")
+            for statement in MIGRATIONS[version - 1].split(";"):
+                if statement.strip():
+                    conn.execute(statement)
+            conn.execute("INSERT INTO schema_version (version) VALUES (?)", (version,))
+        log.info("map database migrated to schema %d", version)
+    return max(current, target)
+
+
+@dataclass
+class StoredMap:
+    """Everything a restart reloads."""
+
+    contents: dict[int, KeyframeContent] = field(default_factory=dict)
+    intrinsics: dict[int, np.ndarray] = field(default_factory=dict)  # as the keyframe arrived, (4,) float64
+    depths: dict[int, KeyframeDepth] = field(default_factory=dict)
+    poses: dict[int, np.ndarray] = field(default_factory=dict)  # (4, 4) float64 world_from_cam
+    bases: dict[int, PcaBasis] = field(default_factory=dict)
+    meta: dict[str, str] = field(default_factory=dict)
+
+
+class MapStore:
+    """The map database. Every `put_*` is one transaction: when it returns, the data is durable."""
+
+    def __init__(self, path: Path | str, synchronous: Literal["NORMAL", "FULL"] = "FULL") -> None:
+        """
+        Args:
+            path: SQLite file (created with its folder when missing).
+            synchronous: FULL also survives power loss; NORMAL (WAL) survives a killed process.
+        """
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        # isolation_level=None: we issue BEGIN ourselves, so a transaction is exactly one put_*
+        self._conn = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
+        self._lock = threading.Lock()
+        self._conn.execute("PRAGMA journal_mode=WAL")
+        self._conn.execute(f"PRAGMA synchronous={synchronous}")
+        migrate(self._conn)
+
+    def close(self) -> None:
+        self._conn.close()
+
+    def __enter__(self) -> MapStore:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _write(self, statements: list[tuple[str, tuple]]) -> None:
+        with self._lock:
+            self._conn.execute("BEGIN IMMEDIATE")
+            try:
+                for sql, args in statements:
+                    self._conn.execute(sql, args)
+            except BaseException:
+                self._conn.execute("ROLLBACK")
+                raise
+            self._conn.execute("COMMIT")
+
+    def put_keyframe(self, content: KeyframeContent, intrinsics: np.ndarray, jpeg: bytes | None = None) -> None:
+        """Store a keyframe's codes, colours, arrival intrinsics (4,) and optional JPEG image."""
+        h, w = content.image_hw
+        rows = [("INSERT OR REPLACE INTO keyframes (kf_id, t_ns, pca_version, height, width, codes, colours, "
+                 "intrinsics) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                 (content.kf_id, content.t_ns, content.pca_version, h, w, to_blob(content.codes),
+                  to_blob(content.colours), to_blob(np.asarray(intrinsics, np.float64))))]
+        if jpeg is not None:
+            rows.append(("INSERT OR REPLACE INTO images (kf_id, jpeg) VALUES (?, ?)", (content.kf_id, jpeg)))
+        self._write(rows)
+
+    def put_graph(self, poses: dict[int, np.ndarray], depths: dict[int, KeyframeDepth]) -> None:
+        """Store the latest poses ((4, 4) world_from_cam) and depths of many keyframes atomically."""
+        rows = [("INSERT INTO poses (kf_id, world_from_cam) VALUES (?, ?) ON CONFLICT(kf_id) DO UPDATE SET "
+                 "world_from_cam = excluded.world_from_cam, revision = revision + 1",
+                 (int(k), to_blob(np.asarray(p, np.float64)))) for k, p in poses.items()]
+        rows += [("INSERT INTO depths (kf_id, intrinsics, disparity, static_weight, confidence) VALUES "
+                  "(?, ?, ?, ?, ?) ON CONFLICT(kf_id) DO UPDATE SET intrinsics = excluded.intrinsics, "
+                  "disparity = excluded.disparity, static_weight = excluded.static_weight, "
+                  "confidence = excluded.confidence, revision = revision + 1",
+                  (int(k), to_blob(np.asarray(d.intrinsics, np.float64)), to_blob(d.disparity),
+                   to_blob(d.static_weight), to_blob(d.confidence))) for k, d in depths.items()]
+        self._write(rows)
+
+    def put_basis(self, basis: PcaBasis) -> None:
+        """Store a PCA basis under its version."""
+        self._write([("INSERT OR REPLACE INTO pca (version, backbone, mean, components) VALUES (?, ?, ?, ?)",
+                      (basis.version, basis.backbone, to_blob(basis.mean), to_blob(basis.components)))])
+
+    def set_meta(self, values: dict[str, str]) -> None:
+        """Store free-form metadata (voxel size, metric flag, stream name...)."""
+        self._write([("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)", (k, str(v)))
+                     for k, v in values.items()])
+
+    def delete_keyframe(self, kf_id: int) -> None:
+        """Remove a keyframe and everything stored about it."""
+        self._write([(f"DELETE FROM {t} WHERE kf_id = ?", (kf_id,)) for t in ("keyframes", "depths", "poses", "images")])
+
+    def keyframe_ids(self) -> list[int]:
+        """Ids of the committed keyframes, ascending."""
+        return [r[0] for r in self._conn.execute("SELECT kf_id FROM keyframes ORDER BY kf_id")]
+
+    def image(self, kf_id: int) -> bytes | None:
+        """The keyframe's JPEG image, if it was stored."""
+        row = self._conn.execute("SELECT jpeg FROM images WHERE kf_id = ?", (kf_id,)).fetchone()
+        return None if row is None else bytes(row[0])
+
+    def load(self) -> StoredMap:
+        """Everything committed, in one read transaction (a consistent snapshot)."""
+        out = StoredMap()
+        with self._lock:
+            self._conn.execute("BEGIN")
+            try:
+                self._load_into(out)
+            finally:
+                self._conn.execute("COMMIT")
+        return out
+
+    def _load_into(self, out: StoredMap) -> None:
+        q = self._conn.execute
+        for kf_id, t_ns, ver, h, w, codes, colours, intr in q(
+            "SELECT kf_id, t_ns, pca_version, height, width, codes, colours, intrinsics FROM keyframes"
+        ):
+            out.contents[kf_id] = KeyframeContent(kf_id, t_ns, from_blob(codes), from_blob(colours), (h, w), ver)
+            if intr is not None:
+                out.intrinsics[kf_id] = from_blob(intr)
+        for kf_id, intr, disp, static, conf in q(
+            "SELECT kf_id, intrinsics, disparity, static_weight, confidence FROM depths"
+        ):
+            out.depths[kf_id] = KeyframeDepth(from_blob(disp), from_blob(intr), from_blob(static), from_blob(conf))
+        out.poses = {k: from_blob(p) for k, p in q("SELECT kf_id, world_from_cam FROM poses")}
+        out.bases = {v: PcaBasis(v, from_blob(m), from_blob(c), b)
+                     for v, b, m, c in q("SELECT version, backbone, mean, components FROM pca")}
+        out.meta = dict(q("SELECT key, value FROM meta"))

