@@ -23,6 +23,7 @@ def _add_stream_options(p: argparse.ArgumentParser) -> None:
                    help="optional calibration hint in source pixels (else estimated)")
     p.add_argument("--max-frames", type=int)
     p.add_argument("--skip", action="append", default=[], metavar="SERVICE", help="a built service not to start")
+    p.add_argument("--port", type=int, default=8000, help="HTTP port of the query gateway")
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
@@ -31,7 +32,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     cfg = RunSettings(
         source=args.source, out=Path(args.out), stream=args.stream, pacing=args.pacing, encoding=args.encoding,
         intrinsics=tuple(args.intrinsics) if args.intrinsics else None, max_frames=args.max_frames, serve=args.serve,
-        skip=tuple(args.skip),
+        skip=tuple(args.skip), port=args.port,
     )
     report = run_pipeline(cfg)
     _print_summary(report)
@@ -115,7 +116,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 # Tools of later stages; each exposes register(subparsers).
-_TOOL_MODULES = ["services.evaluation.cli", "services.common.models.cli", "services.mapstore.cli"]
+_TOOL_MODULES = [
+    "services.evaluation.cli", "services.common.models.cli", "services.mapstore.cli", "services.query_api.cli",
+]
 
 
 def main(argv: list[str] | None = None) -> int:

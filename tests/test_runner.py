@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from services.runner.children import PIPELINE, is_built
+from services.runner.children import PIPELINE, free_tcp_endpoint, is_built
 from tests.conftest import REPO, wait_until
 
 
@@ -17,7 +17,8 @@ from tests.conftest import REPO, wait_until
 def test_demo_runs_and_reports_what_ran(tmp_path):
     out = tmp_path / "demo"
     result = subprocess.run(
-        [sys.executable, "-m", "services.cli", "demo", "--frames", "12", "--out", str(out)],
+        [sys.executable, "-m", "services.cli", "demo", "--frames", "12", "--out", str(out),
+         "--port", free_tcp_endpoint().rsplit(":", 1)[1]],
         cwd=REPO, capture_output=True, text=True, timeout=600,
     )
     assert result.returncode == 0, result.stdout + result.stderr

@@ -35,6 +35,7 @@ class RunSettings:
     max_frames: int | None = None
     serve: bool = False
     skip: tuple[str, ...] = ()  # built services not to start (e.g. the gateway on a headless batch run)
+    port: int = 8000  # the query gateway's HTTP port on 127.0.0.1
     credit_window: int = 8  # frames the runner lets ingest run ahead when it is the only consumer
     alive_timeout_s: float = 120.0  # model loading can take a while on a cold CPU
     stall_timeout_s: float = 600.0  # no message at all for this long means something hung
@@ -117,7 +118,7 @@ def run_pipeline(cfg: RunSettings) -> RunReport:
             if sink:
                 sink.close()
             if cfg.serve and "query_api" in built:
-                _serve_until_interrupted(started)
+                _serve_until_interrupted(started, cfg.port)
         finally:
             kids.stop(started)
     _fill_report(report, observer)
@@ -130,6 +131,8 @@ def _service_env(name: str, cfg: RunSettings) -> dict[str, str]:
     env = {prefix + "STREAM": cfg.stream}
     if name == "mapstore":
         env.update({prefix + "DB_PATH": str(cfg.out / "map.db"), prefix + "EXPORT_DIR": str(cfg.out)})
+    if name == "query_api":
+        env.update({"KMVIPE_QUERY_PORT": str(cfg.port), "KMVIPE_QUERY_HOST": "127.0.0.1"})
     if name == "ingest":
         env.update({prefix + "SOURCE": cfg.source, prefix + "PACING": cfg.pacing, prefix + "ENCODING": cfg.encoding})
         if cfg.intrinsics:
@@ -199,8 +202,8 @@ def _follow(observer: _Observer, started: list[kids.Child], ingest: kids.Child, 
         bar.close()
 
 
-def _serve_until_interrupted(started: list[kids.Child]) -> None:
-    print("serving queries; Ctrl-C to stop")
+def _serve_until_interrupted(started: list[kids.Child], port: int) -> None:
+    print(f"serving queries at http://127.0.0.1:{port}/ (viewer) and /docs (API); Ctrl-C to stop")
     try:
         while all(c.running() for c in started if c.name == "query_api"):
             time.sleep(0.5)

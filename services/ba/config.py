@@ -1,0 +1,80 @@
+"""Settings of the BA service (``KMVIPE_BA_*`` environment variables), built once per process.
+
+The algorithm parameters are turned into the frozen dataclasses of :mod:`services.ba.core.params`, which the
+math core takes; the core never reads settings itself.
+"""
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from services.ba.core.params import BAParams, FlowParams, RobustParams
+
+
+class BASettings(BaseSettings):
+    """Dense BA service settings."""
+
+    model_config = SettingsConfigDict(env_prefix="KMVIPE_BA_", env_file=".env", extra="ignore")
+
+    stream: str = "default"
+    """Stream name ``<s>`` in ``kmvipe/<s>/...``."""
+    device: str = "auto"
+    """``auto`` (CUDA when available, else CPU), ``cpu`` or ``cuda[:n]``."""
+    window: int = 25
+    """Keyframes in the frontend sliding window."""
+    temporal_radius: int = 2
+    """Temporal edges connect keyframes at most this far apart in the window."""
+    iterations: int = 6
+    """LM iterations per frontend update."""
+    global_iterations: int = 10
+    """LM iterations of the background global BA."""
+    optimise_focal: bool = True
+    """Refine the shared focal length (published on ``intrinsics``)."""
+    lambda_embed: float = 0.0
+    """Weight of the code-similarity residual (0 disables the term)."""
+    embed_form: Literal["angular", "chordal"] = "angular"
+    """``angular``: r = 1 - cs; ``chordal``: r = sqrt(2 (1 - cs))."""
+    alpha_disp: float = 0.05
+    """Weight of the disparity prior where the features service sends a depth prior."""
+    use_ark: bool = True
+    """Adaptive robust kernel from code similarity; false = fixed ``fixed_alpha`` everywhere."""
+    fixed_alpha: float = 2.0
+    """Barron shape without ARK (2 = L2, 0 = Cauchy)."""
+    alpha_static: float = 2.0
+    """ARK shape of consistent pixels."""
+    alpha_dynamic: float = -2.0
+    """ARK shape of inconsistent pixels (<= 0)."""
+    kappa: float = 0.5
+    """ARK sigmoid midpoint (cosine similarity)."""
+    tau: float = 0.05
+    """ARK sigmoid temperature."""
+    robust_scale: float = 0.5
+    """Barron scale c in grid pixels."""
+    flow_preset: Literal["ultrafast", "fast", "medium"] = "medium"
+    """OpenCV DIS preset of the flow targets."""
+    fb_sigma: float = 1.0
+    """Forward-backward error (working px) where flow confidence is exp(-1/2)."""
+
+    def robust_params(self) -> RobustParams:
+        """The robust-kernel parameters of the core."""
+        return RobustParams(use_ark=self.use_ark, fixed_alpha=self.fixed_alpha, alpha_static=self.alpha_static,
+                            alpha_dynamic=self.alpha_dynamic, kappa=self.kappa, tau=self.tau,
+                            scale=self.robust_scale)
+
+    def ba_params(self, global_ba: bool = False) -> BAParams:
+        """BA parameters of the frontend (or, with ``global_ba``, of the background global BA)."""
+        return BAParams(iterations=self.global_iterations if global_ba else self.iterations,
+                        lambda_embed=self.lambda_embed, embed_form=self.embed_form, alpha_disp=self.alpha_disp,
+                        optimise_focal=self.optimise_focal, robust=self.robust_params())
+
+    def flow_params(self) -> FlowParams:
+        """Flow-target parameters."""
+        return FlowParams(preset=self.flow_preset, fb_sigma=self.fb_sigma)
+
+    def torch_device(self) -> torch.device:
+        """Resolve ``device`` (``auto`` picks CUDA when present)."""
+        if self.device == "auto":
+            return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        return torch.device(self.device)

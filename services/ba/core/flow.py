@@ -1,0 +1,74 @@
+"""Flow targets for BA edges: OpenCV DIS optical flow, sampled to the 1/8 grid, forward-backward confidence."""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+
+from services.ba.core.params import FlowParams
+
+_PRESETS = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
+            "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
+
+
+class FlowTargets(NamedTuple):
+    """Where each grid cell of keyframe i lands in keyframe j."""
+
+    target: np.ndarray  # (h, w, 2) float32 grid coordinates (x, y) in keyframe j
+    confidence: np.ndarray  # (h, w) float32 in [0, 1]
+    flow: np.ndarray  # (H, W, 2) float32 forward flow at working resolution (reusable as an initial flow)
+
+
+def to_grey(image: np.ndarray) -> np.ndarray:
+    """``(H, W, 3)`` uint8 RGB or ``(H, W)`` uint8 grey -> ``(H, W)`` uint8 grey."""
+    if image.dtype != np.uint8 or image.ndim not in (2, 3):
+        raise ValueError(f"uint8 (H,W) or (H,W,3) image expected, got {image.dtype} {image.shape}")
+    return image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+
+
+def dis_flow(image_a: np.ndarray, image_b: np.ndarray, params: FlowParams,
+             init_flow: np.ndarray | None = None) -> np.ndarray:
+    """Dense flow ``(H, W, 2)`` float32 (dx, dy in pixels) from ``image_a`` to ``image_b`` (uint8 grey/RGB)."""
+    if params.preset not in _PRESETS:
+        raise ValueError(f"preset must be one of {sorted(_PRESETS)}, got {params.preset!r}")
+    dis = cv2.DISOpticalFlow_create(_PRESETS[params.preset])
+    if params.finest_scale is not None:
+        dis.setFinestScale(params.finest_scale)
+    a, b = to_grey(image_a), to_grey(image_b)
+    if a.shape != b.shape:
+        raise ValueError(f"images differ in size: {a.shape} vs {b.shape}")
+    if init_flow is None:
+        return dis.calc(a, b, None)
+    dis.setUseInitialFlow(True)
+    return dis.calc(a, b, np.ascontiguousarray(init_flow, dtype=np.float32))
+
+
+def _block_mean(x: np.ndarray, grid: int) -> np.ndarray:
+    h, w = x.shape[0] // grid, x.shape[1] // grid
+    return x[: h * grid, : w * grid].reshape(h, grid, w, grid, *x.shape[2:]).mean(axis=(1, 3))
+
+
+def flow_targets(image_i: np.ndarray, image_j: np.ndarray, params: FlowParams,
+                 init_flow: np.ndarray | None = None) -> FlowTargets:
+    """Grid flow targets of edge ``(i, j)`` from working-resolution images (H, W multiples of ``grid``).
+
+    The target of cell (r, c) is the mean landing point of its 8x8 block, i.e. the flow at the cell centre
+    ``(8c + 3.5, 8r + 3.5)`` for locally affine flow, converted to grid coordinates with
+    ``x_grid = (x + 0.5)/8 - 0.5`` (docs/CONVENTIONS.md). Confidence is the block mean of
+    ``exp(-|F(p) + B(p + F(p))|^2 / (2 sigma^2))`` (0 where ``p + F(p)`` leaves the image).
+    """
+    height, width = to_grey(image_i).shape
+    if height % params.grid or width % params.grid:
+        raise ValueError(f"image size {height}x{width} is not a multiple of {params.grid}")
+    fwd = dis_flow(image_i, image_j, params, init_flow)
+    bwd = dis_flow(image_j, image_i, params)
+    xs, ys = np.meshgrid(np.arange(width, dtype=np.float32), np.arange(height, dtype=np.float32))
+    land_x, land_y = xs + fwd[..., 0], ys + fwd[..., 1]
+    bwd_at = cv2.remap(bwd, land_x, land_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    fb_err2 = ((fwd + bwd_at) ** 2).sum(-1)
+    inside = (land_x >= -0.5) & (land_x <= width - 0.5) & (land_y >= -0.5) & (land_y <= height - 0.5)
+    conf = np.exp(-0.5 * fb_err2 / params.fb_sigma**2) * inside
+    land = np.stack([land_x, land_y], -1)
+    target = (_block_mean(land, params.grid) + 0.5) / params.grid - 0.5
+    return FlowTargets(target.astype(np.float32), _block_mean(conf, params.grid).astype(np.float32), fwd)

@@ -1,0 +1,1 @@
+"""Query gateway: natural-language and example queries over HTTP, trajectory and map export, a web viewer."""

@@ -1,0 +1,1 @@
+"""HTTP layer of the gateway: request/response models, routes, middleware."""

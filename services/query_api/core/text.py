@@ -1,0 +1,139 @@
+"""Text → backbone-space query vectors: prompt templates, encoder + head, and an LRU cache.
+
+A :class:`TextEmbedder` turns labels such as ``"red chair"`` into unit vectors (Q, D) float32 in the
+embedding space of a backbone (``output_space``). Two encoders exist:
+
+- :class:`PromptEncoder`: CLIP text tower → Talk2DINO head (both callables taking/returning tensors);
+  every label is written into each template, each prompt is embedded and projected, the projected vectors
+  are L2-normalised and averaged (Talk2DINO's ensemble), and the mean is normalised again.
+- :class:`OracleTextEncoder`: label names mapped to given vectors (the synthetic world's oracle labels), so
+  retrieval can be checked exactly without a language model.
+"""
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import Callable, Protocol, Sequence
+
+import numpy as np
+import torch
+
+DEFAULT_TEMPLATES: tuple[str, ...] = (
+    "There is {label} in the scene",
+    "There is a {label} in the scene",
+    "a photo of a {label}",
+    "a photo of the {label}",
+)
+
+
+class UnknownLabel(ValueError):
+    """The oracle encoder was asked for a label it does not know (the message lists the known ones)."""
+
+
+class TextEncoder(Protocol):
+    """Labels → (Q, D) float32 unit vectors in ``output_space``."""
+
+    name: str
+    output_space: str
+
+    def encode(self, labels: Sequence[str]) -> np.ndarray: ...
+
+
+def normalise_label(text: str) -> str:
+    """The cache key of a label: stripped, inner whitespace collapsed, lower case."""
+    return " ".join(str(text).split()).lower()
+
+
+def _unit_rows(x: np.ndarray) -> np.ndarray:
+    norms = np.linalg.norm(x, axis=1, keepdims=True)
+    return (x / np.maximum(norms, 1e-12)).astype(np.float32)
+
+
+class PromptEncoder:
+    """CLIP text tower + text head with prompt ensembling.
+
+    ``text_model.encode(prompts) -> (P, C) tensor`` (CLIP space); ``head(tensor (P, C)) -> (P, D)`` (backbone
+    space). ``templates`` contain ``{label}``.
+    """
+
+    def __init__(self, text_model, head: Callable[[torch.Tensor], torch.Tensor], templates: Sequence[str],
+                 name: str, output_space: str):
+        if not templates or any("{label}" not in t for t in templates):
+            raise ValueError(f"every template needs a '{{label}}' placeholder, got {list(templates)!r}")
+        self.text_model, self.head, self.templates = text_model, head, tuple(templates)
+        self.name, self.output_space = name, output_space
+
+    @torch.inference_mode()
+    def encode(self, labels: Sequence[str]) -> np.ndarray:
+        """(Q,) labels → (Q, D) float32 unit vectors."""
+        if not labels:
+            raise ValueError("encode() needs at least one label")
+        prompts = [t.format(label=label) for label in labels for t in self.templates]
+        clip = self.text_model.encode(prompts)  # (Q·T, C), unit rows
+        projected = self.head(clip).float()  # (Q·T, D)
+        projected = torch.nn.functional.normalize(projected, dim=-1).reshape(len(labels), len(self.templates), -1)
+        return _unit_rows(projected.mean(dim=1).cpu().numpy())
+
+
+class OracleTextEncoder:
+    """Maps label names to given vectors: ``names`` (L,) and ``vectors`` (L, D) float32."""
+
+    def __init__(self, names: Sequence[str], vectors: np.ndarray, output_space: str = "oracle"):
+        vectors = np.asarray(vectors, np.float32)
+        if vectors.ndim != 2 or vectors.shape[0] != len(names):
+            raise ValueError(f"oracle needs (L, D) vectors for L={len(names)} names, got {vectors.shape}")
+        self.table = {normalise_label(n): v for n, v in zip(names, _unit_rows(vectors))}
+        self.name, self.output_space = "oracle", output_space
+        self.dim = int(vectors.shape[1])
+
+    def encode(self, labels: Sequence[str]) -> np.ndarray:
+        missing = [label for label in labels if normalise_label(label) not in self.table]
+        if missing:
+            raise UnknownLabel(f"oracle text encoder knows no label {missing[0]!r}; known: {', '.join(sorted(self.table))}")
+        return np.stack([self.table[normalise_label(label)] for label in labels])
+
+
+@dataclass(frozen=True)
+class CacheInfo:
+    """Counters of the embedding cache."""
+
+    hits: int
+    misses: int
+    size: int
+
+
+class TextEmbedder:
+    """An encoder with an LRU cache of per-label vectors (keys: :func:`normalise_label`).
+
+    ``capacity``: labels kept; the least recently used is evicted first. Not thread-safe: callers serialise.
+    """
+
+    def __init__(self, encoder: TextEncoder, capacity: int = 1024):
+        if capacity < 1:
+            raise ValueError(f"capacity must be >= 1, got {capacity}")
+        self.encoder, self.capacity = encoder, capacity
+        self._cache: OrderedDict[str, np.ndarray] = OrderedDict()
+        self.hits = self.misses = 0
+
+    @property
+    def output_space(self) -> str:
+        return self.encoder.output_space
+
+    def embed(self, labels: Sequence[str]) -> np.ndarray:
+        """(Q,) labels → (Q, D) float32 unit vectors; only labels not in the cache reach the encoder."""
+        keys = [normalise_label(label) for label in labels]
+        todo = list(dict.fromkeys(k for k in keys if k not in self._cache))
+        self.hits += len(keys) - sum(1 for k in keys if k in todo)
+        self.misses += len(todo)
+        if todo:
+            for key, vec in zip(todo, self.encoder.encode(todo)):
+                self._cache[key] = np.asarray(vec, np.float32)
+        out = np.stack([self._cache[k] for k in keys])
+        for key in keys:
+            self._cache.move_to_end(key)
+        while len(self._cache) > self.capacity:
+            self._cache.popitem(last=False)
+        return out
+
+    def info(self) -> CacheInfo:
+        return CacheInfo(self.hits, self.misses, len(self._cache))

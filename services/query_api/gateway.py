@@ -1,0 +1,151 @@
+"""The gateway's state: bus, mapstore client, language path, example backbone, latest poses per stream.
+
+Every method here blocks (Zenoh, torch); the HTTP routes call them from a worker thread.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..common import keys
+from ..common.bus import Bus, Delivery
+from ..common.errors import KmVipeError, ModelError
+from ..common.models import ModelStore
+from ..common.models.backbones import normalise_rgb
+from ..common.schema import MapAnswer, MapSegment, Poses
+from .config import QuerySettings
+from .core.answers import QueryResult, RegionParams, group_answer
+from .core.example import box_mask, fit_to_patches, pooled_feature
+from .core.trajectory import PoseBook, Trajectory
+from .mapclient import MapClient, QueryOptions
+from .textpath import SpaceMismatch, TextPath
+
+log = logging.getLogger(__name__)
+SERVICES = ("ingest", "features", "ba", "mapstore", "query_api")
+
+
+class ExampleUnavailable(KmVipeError):
+    """Query by example cannot run (backbone missing or not the map's)."""
+
+
+@dataclass(frozen=True)
+class Answer:
+    """A scored query: per text, its regions and top points; optional per-point scores (Q, N)."""
+
+    results: list[QueryResult]
+    space: str  # the embedding space the vectors were scored in (the map's backbone)
+    n_points: int
+    all_scores: np.ndarray | None
+
+
+class Gateway:
+    def __init__(self, cfg: QuerySettings, bus: Bus, text: TextPath | None = None, backbone=None):
+        self.cfg, self.bus = cfg, bus
+        self.maps = MapClient(bus, cfg.timeout_s)
+        self.text = text or TextPath(cfg)
+        self._backbone = backbone
+        self._backbone_lock = threading.Lock()
+        self._poses: dict[str, PoseBook] = {}
+        self._poses_lock = threading.Lock()
+        self._spaces: dict[str, tuple[float, str]] = {}  # stream → (monotonic time, backbone space)
+        self._spaces_lock = threading.Lock()
+        bus.subscribe(keys.topic("*", keys.POSE), self._on_pose, expect=[Poses])
+
+    # -- poses ------------------------------------------------------------------------------------------
+    def _on_pose(self, delivery: Delivery) -> None:
+        msg = delivery.msg
+        assert isinstance(msg, Poses)
+        with self._poses_lock:
+            book = self._poses.setdefault(msg.stream, PoseBook(self.cfg.trajectory_capacity))
+            book.update(msg.frame_seqs, msg.stamps_ns, msg.poses, msg.final)
+
+    def trajectory(self, stream: str) -> Trajectory | None:
+        with self._poses_lock:
+            book = self._poses.get(stream)
+            return book.trajectory() if book is not None else None
+
+    def pose_streams(self) -> dict[str, int]:
+        with self._poses_lock:
+            return {s: len(b) for s, b in self._poses.items()}
+
+    # -- queries ----------------------------------------------------------------------------------------
+    def ask(self, stream: str, vectors: np.ndarray, space: str, opts: QueryOptions) -> Answer:
+        """Score (Q, D) vectors in ``space`` against the map of ``stream``."""
+        ans: MapAnswer = self.maps.query(stream, vectors, space, opts)
+        results = group_answer(len(vectors), ans.region_query, ans.region_score, ans.region_centroid,
+                               ans.region_box_min, ans.region_box_max, ans.region_count, ans.point_query,
+                               ans.point_xyz, ans.point_score, RegionParams())
+        return Answer(results, space, int(ans.n_points), ans.all_scores)
+
+    def map_space(self, stream: str) -> str:
+        """The map's backbone space (from its stats, remembered for ``cfg.space_cache_s``)."""
+        now = time.monotonic()
+        with self._spaces_lock:
+            hit = self._spaces.get(stream)
+        if hit is not None and now - hit[0] < self.cfg.space_cache_s:
+            return hit[1]
+        space = self.maps.stats(stream).backbone
+        with self._spaces_lock:
+            self._spaces[stream] = (now, space)
+        return space
+
+    def text_vectors(self, stream: str, texts: list[str]) -> tuple[np.ndarray, str]:
+        """(Q, D) vectors of ``texts`` in the map's space."""
+        space = self.map_space(stream)
+        return self.text.embed(texts, space), space
+
+    def query_text(self, stream: str, texts: list[str], opts: QueryOptions) -> Answer:
+        vectors, space = self.text_vectors(stream, texts)
+        return self.ask(stream, vectors, space, opts)
+
+    def segment(self, stream: str, texts: list[str]) -> MapSegment:
+        vectors, space = self.text_vectors(stream, texts)
+        return self.maps.segment(stream, vectors, space)
+
+    def query_example(self, stream: str, image: np.ndarray, box=None, mask=None, opts=QueryOptions()) -> Answer:
+        """Image (H, W, 3) uint8 RGB and a pixel box (x0, y0, x1, y1) or (H, W) bool mask → the answer."""
+        space = self.map_space(stream)
+        backbone = self.backbone()
+        if space and backbone.output_space != space:
+            raise SpaceMismatch(f"this map's features are in '{space}' but the example backbone "
+                                f"'{backbone.name}' writes into '{backbone.output_space}'; set KMVIPE_QUERY_BACKBONE "
+                                "to the backbone the features service used")
+        if mask is None:
+            mask = box_mask(image.shape[0], image.shape[1], box)
+        img, m = fit_to_patches(image, mask, backbone.patch_size, self.cfg.example_max_side)
+        feats = backbone(normalise_rgb(img, backbone.device))[0]  # (C, h, w)
+        return self.ask(stream, pooled_feature(feats, m)[None], space, opts)
+
+    def backbone(self):
+        with self._backbone_lock:
+            if self._backbone is None:
+                from ..common.models.loaders import load_backbone
+
+                try:
+                    self._backbone = load_backbone(self.cfg.backbone, ModelStore(self.cfg.models_dir), self.cfg.device)
+                except ModelError as exc:
+                    raise ExampleUnavailable(f"query by example needs the backbone '{self.cfg.backbone}': {exc}") from exc
+            return self._backbone
+
+    # -- discovery --------------------------------------------------------------------------------------
+    def streams(self) -> dict[str, dict]:
+        """Every known stream: those a mapstore serves (with stats) and those with poses."""
+        out: dict[str, dict] = {}
+        for name, st in self.maps.all_stats(self.cfg.alive_timeout_s).items():
+            out[name] = {"map": {"keyframes": st.keyframes, "points": st.points, "voxels": st.voxels,
+                                 "backbone": st.backbone, "pca_version": st.pca_version, "metric": st.metric}}
+        for name, n in self.pose_streams().items():
+            out.setdefault(name, {"map": None})["poses"] = n
+        for entry in out.values():
+            entry.setdefault("poses", 0)
+        return out
+
+    def health(self) -> dict[str, list[str]]:
+        """Alive instances per service (every known service listed, empty when down)."""
+        alive = self.bus.alive(self.cfg.alive_timeout_s)
+        return {name: sorted(alive.get(name, [])) for name in (*SERVICES, *sorted(set(alive) - set(SERVICES)))}
+

@@ -1,0 +1,57 @@
+"""Flow targets: DIS flow sampled to the 1/8 grid (cell-centre convention) and forward-backward confidence."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from services.ba.core.flow import FlowParams, flow_targets, to_grey
+
+
+def _texture(h: int, w: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    noise = rng.random((h, w)).astype(np.float32)
+    img = cv2.GaussianBlur(noise, (0, 0), 2.0)
+    img = (img - img.min()) / (img.max() - img.min()) * 255
+    return img.astype(np.uint8)
+
+
+def _shift(img: np.ndarray, dx: float, dy: float) -> np.ndarray:
+    """Content moves by (+dx, +dy): new(x + dx, y + dy) = old(x, y)."""
+    m = np.float32([[1, 0, dx], [0, 1, dy]])
+    return cv2.warpAffine(img, m, (img.shape[1], img.shape[0]), flags=cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_REFLECT)
+
+
+def test_translation_gives_shifted_grid_targets():
+    img = _texture(128, 160, seed=0)
+    dx, dy = 5.5, -3.25
+    out = flow_targets(img, _shift(img, dx, dy), FlowParams())
+    assert out.target.shape == (16, 20, 2) and out.confidence.shape == (16, 20)
+    rows, cols = np.mgrid[0:16, 0:20]
+    interior = (slice(2, -2), slice(2, -2))
+    # grid coordinates: a shift of s working pixels is s/8 grid pixels
+    np.testing.assert_allclose(out.target[..., 0][interior], (cols + dx / 8)[interior], atol=0.05)
+    np.testing.assert_allclose(out.target[..., 1][interior], (rows + dy / 8)[interior], atol=0.05)
+    assert out.confidence[interior].mean() > 0.8
+
+
+def test_inconsistent_region_gets_low_confidence():
+    img = _texture(128, 160, seed=1)
+    other = _shift(img, 4.0, 0.0)
+    other[40:88, 56:104] = _texture(48, 48, seed=2)  # content that is not in image i
+    out = flow_targets(img, other, FlowParams())
+    inside = out.confidence[5:11, 7:13].mean()  # grid cells covering the replaced block
+    outside = np.concatenate([out.confidence[1:4, 2:-2].ravel(), out.confidence[-4:-1, 2:-2].ravel()]).mean()
+    assert inside < 0.6 and outside > 0.95, (inside, outside)
+    # cells whose 8x8 block half leaves image j (content moves right by 4 px) get half confidence
+    np.testing.assert_allclose(out.confidence[1:-1, -1], 0.5, atol=0.05)
+
+
+def test_rgb_input_and_bad_sizes():
+    rgb = np.stack([_texture(64, 64, 3)] * 3, -1)
+    assert to_grey(rgb).shape == (64, 64)
+    with pytest.raises(ValueError):
+        flow_targets(rgb[:60], rgb[:60], FlowParams())
+    with pytest.raises(ValueError):
+        to_grey(rgb.astype(np.float32))
