@@ -58,3 +58,17 @@ def test_real_sequences_stream_end_to_end(data_dir, unix_endpoint, tmp_path, rel
     result = _stream_through_ingest(str(data_dir / relative), "real", unix_endpoint, tmp_path / "out.json")
     assert result["seqs"] == list(range(n_frames))
     assert result["eos"] == {"seq": n_frames - 1, "count": n_frames}
+
+
+@pytest.mark.parametrize(
+    "env, message",
+    [
+        ({"KMVIPE_INGEST_PACING": "bogus"}, "invalid settings"),
+        ({"KMVIPE_BUS_MODE": "client", "KMVIPE_BUS_CONNECT": '["tcp/127.0.0.1:9"]'}, "cannot open the Zenoh session"),
+    ],
+)
+def test_a_service_with_bad_settings_exits_with_one_clear_message(env, message):
+    result = subprocess.run([sys.executable, "-m", "services.cli", "service", "ingest"], cwd=REPO,
+                            env={**os.environ, **env}, capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2
+    assert message in result.stderr and "Traceback" not in result.stderr

@@ -16,7 +16,7 @@ import zenoh
 
 from . import keys
 from .config import BusSettings
-from .errors import DecodeError, ServiceTimeout
+from .errors import BusError, DecodeError, ServiceTimeout
 from .schema import Message, decode, encode
 
 log = logging.getLogger(__name__)
@@ -40,7 +40,14 @@ def zenoh_config(settings: BusSettings) -> zenoh.Config:
 
 
 def open_session(settings: BusSettings) -> zenoh.Session:
-    return zenoh.open(zenoh_config(settings))
+    try:
+        return zenoh.open(zenoh_config(settings))
+    except zenoh.ZError as exc:
+        raise BusError(
+            f"cannot open the Zenoh session (mode {settings.mode}, listen {settings.listen}, connect "
+            f"{settings.connect}): {exc}. Check that a router runs at the connect endpoint and that listen "
+            "endpoints are free (KMVIPE_BUS_CONNECT / KMVIPE_BUS_LISTEN)."
+        ) from exc
 
 
 class PayloadStats:

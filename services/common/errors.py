@@ -21,6 +21,10 @@ class ModelError(KmVipeError):
     """A model is missing, corrupt, or does not fit the map it is asked to serve."""
 
 
+class BusError(KmVipeError):
+    """The Zenoh session cannot be opened (no router at the endpoint, an endpoint already in use, bad config)."""
+
+
 class ServiceTimeout(KmVipeError):
     """A service did not answer a request within its deadline."""
 

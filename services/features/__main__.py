@@ -3,28 +3,18 @@ from __future__ import annotations
 
 import sys
 
-from ..common.bus import Bus
-from ..common.config import BusSettings
-from ..common.errors import KmVipeError
-from ..common.lifecycle import stop_on_signals, tune_malloc_for_frames
-from ..common.logs import setup_logging
+from ..common.service_main import service_main
 from .config import FeaturesSettings
 from .service import build_state, run
 
 
-def main(argv: list[str] | None = None) -> int:
-    setup_logging("features")
-    stop = stop_on_signals()
-    tune_malloc_for_frames()
+def _body(bus, stop) -> None:
     cfg = FeaturesSettings()
-    try:
-        state = build_state(cfg)
-        with Bus(BusSettings(), "features") as bus:
-            run(cfg, bus, stop, state)
-    except KmVipeError as exc:
-        print(f"features: {exc}", file=sys.stderr)
-        return 2
-    return 0
+    run(cfg, bus, stop, build_state(cfg))
+
+
+def main(argv: list[str] | None = None) -> int:
+    return service_main("features", _body, handles_frames=True)
 
 
 if __name__ == "__main__":

@@ -3,27 +3,18 @@ from __future__ import annotations
 
 import sys
 
-from ..common.bus import Bus
-from ..common.config import BusSettings
-from ..common.errors import KmVipeError
-from ..common.lifecycle import stop_on_signals, tune_malloc_for_frames
-from ..common.logs import setup_logging
+from ..common.service_main import service_main
 from .config import IngestSettings
 from .service import run
 
 
+def _body(bus, stop) -> int:
+    counters = run(IngestSettings(), bus, stop)
+    return 0 if counters.sent or not counters.read else 1  # frames read but none delivered: say so
+
+
 def main(argv: list[str] | None = None) -> int:
-    setup_logging("ingest")
-    stop = stop_on_signals()
-    tune_malloc_for_frames()
-    cfg = IngestSettings()
-    try:
-        with Bus(BusSettings(), "ingest") as bus:
-            counters = run(cfg, bus, stop)
-    except KmVipeError as exc:
-        print(f"ingest: {exc}", file=sys.stderr)
-        return 2
-    return 0 if counters.sent or not counters.read else 1
+    return service_main("ingest", _body, handles_frames=True)
 
 
 if __name__ == "__main__":

