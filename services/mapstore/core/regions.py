@@ -88,15 +88,24 @@ def find_regions(
     if not (ijk.shape[0] == xyz.shape[0] == scores.shape[0]):
         raise ValueError("ijk, xyz and scores must have the same length")
     sel = np.flatnonzero(scores >= params.score_threshold)
+    if sel.size == 0:
+        return []
     labels = connected_components(ijk[sel], params.connectivity)
-    regions = []
-    by_label = np.argsort(labels, kind="stable")
-    bounds = np.flatnonzero(np.diff(labels[by_label])) + 1
-    for members in np.split(by_label, bounds) if labels.size else []:
-        idx = sel[members]
-        if idx.size < params.min_voxels:
-            continue
-        p, s = xyz[idx], scores[idx]
-        regions.append(Region(p.mean(0), p.min(0), p.max(0), float(s.mean()), float(s.max()), int(idx.size), idx))
-    regions.sort(key=lambda r: -r.score)
-    return regions[: params.max_regions]
+    # per-component statistics in one pass (reduceat over label-sorted points), no loop over components
+    order = np.argsort(labels, kind="stable")
+    counts = np.bincount(labels)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    p, sc = xyz[sel[order]], scores[sel[order]]
+    mean_score = np.add.reduceat(sc, starts) / counts
+    ranked = [c for c in np.argsort(-mean_score, kind="stable") if counts[c] >= params.min_voxels]
+    ranked = ranked[: params.max_regions]
+    if not ranked:
+        return []
+    box_min, box_max = np.minimum.reduceat(p, starts, axis=0), np.maximum.reduceat(p, starts, axis=0)
+    centroid = np.add.reduceat(p, starts, axis=0) / counts[:, None]
+    best = np.maximum.reduceat(sc, starts)
+    return [
+        Region(centroid[c], box_min[c], box_max[c], float(mean_score[c]), float(best[c]), int(counts[c]),
+               sel[order[starts[c]: starts[c] + counts[c]]])
+        for c in ranked
+    ]
