@@ -185,3 +185,15 @@ def test_rebuild_equals_incremental():
     assert full == len(inc.keys)
     np.testing.assert_allclose(m.fused().xyz, inc.xyz, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(m.fused().codes, inc.codes, rtol=1e-4, atol=1e-5)
+
+
+def test_far_cells_are_left_out_relative_to_the_median_depth():
+    from services.mapstore.config import PointParams
+    from services.mapstore.core.keyframe import KeyframeDepth, candidate_points
+
+    disparity = np.full((6, 8), 0.5, np.float32)  # 2 m
+    disparity[0, :3] = 1e-5  # 100 km: the sky of a monocular estimate
+    k = np.array([100.0, 100.0, 31.5, 23.5])
+    points = candidate_points(KeyframeDepth(disparity, k), PointParams(max_depth_ratio=20.0))
+    assert len(points.cells) == 6 * 8 - 3 and not set(points.cells) & {0, 1, 2}
+    assert np.all(points.points_cam[:, 2] < 2.1)

@@ -22,6 +22,9 @@ class PointParams:
     """A cell whose static (ARK) weight is below this is marked dynamic and left out."""
     min_weight: float = 0.1
     """Cells whose weight (confidence × static × consistency) is below this are left out."""
+    max_depth_ratio: float = 20.0
+    """Cells deeper than this × the keyframe's median depth are left out: near-zero disparities (sky, the
+    horizon) are where monocular depth is least certain, and their points would land far outside the map."""
 
 
 @dataclass(frozen=True)

@@ -94,6 +94,9 @@ def candidate_points(depth: KeyframeDepth, params: PointParams) -> AnchoredPoint
     conf = np.ones_like(disp) if depth.confidence is None else depth.confidence.astype(np.float64)
     keep = (disp > params.min_disparity) & (static >= params.dynamic_threshold)
     keep &= np.isfinite(disp)
+    if keep.any():
+        median_disparity = float(np.median(disp[keep]))
+        keep &= disp >= median_disparity / params.max_depth_ratio
     cells = np.flatnonzero(keep)
     pts = backproject_grid(depth.disparity, grid_intrinsics(depth.intrinsics)).reshape(-1, 3)[cells]
     return AnchoredPoints(cells, pts, (conf * static).reshape(-1)[cells])
