@@ -1,0 +1,113 @@
+"""Poses of non-keyframes: motion-only alignment to the two keyframes that bracket each frame in time.
+
+A frame keeps its pose relative to the keyframe before it (its anchor), so a BA that moves the anchor moves
+the frame with it; at end of stream every frame is aligned again against the final keyframes.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import torch
+
+from services.ba.core import flow as core_flow
+from services.ba.core import se3
+from services.ba.frontend import motion
+from services.ba.frontend.graph import KeyframeGraph, Targets
+from services.ba.frontend.params import MotionParams
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class FrameRecord:
+    """One non-keyframe."""
+
+    seq: int
+    stamp: int  # t_ns
+    image: np.ndarray  # (h', w') uint8 grey, any size with the working aspect ratio
+    anchor: int | None = None  # seq of the keyframe its relative pose refers to
+    anchor_from_cam: torch.Tensor | None = None  # (4, 4) float64
+    targets: dict[int, Targets] = field(default_factory=dict)  # keyframe seq -> targets into this frame
+
+
+def interpolate(pose_a: torch.Tensor, pose_b: torch.Tensor, frac: float) -> torch.Tensor:
+    """Pose ``(4, 4)`` a fraction ``frac`` of the way from ``pose_a`` to ``pose_b`` (geodesic in SE3)."""
+    rel = se3.inverse(pose_a) @ pose_b
+    return pose_a @ se3.exp(frac * se3.log(rel))
+
+
+class FramePoses:
+    """Non-keyframe records and their alignment against a :class:`KeyframeGraph`."""
+
+    def __init__(self, params: MotionParams):
+        self.params = params
+        self.frames: dict[int, FrameRecord] = {}
+
+    def add(self, record: FrameRecord) -> None:
+        self.frames[record.seq] = record
+
+    def bracket(self, graph: KeyframeGraph, seq: int) -> tuple[int | None, int | None]:
+        """Positions of the last keyframe before ``seq`` and the first after it (None where none)."""
+        before = [k for k, s in enumerate(graph.seqs) if s < seq]
+        after = [k for k, s in enumerate(graph.seqs) if s > seq]
+        return (before[-1] if before else None), (after[0] if after else None)
+
+    def pending(self, graph: KeyframeGraph) -> list[int]:
+        """Seqs of frames not aligned yet whose later keyframe exists."""
+        last = graph.seqs[-1] if len(graph) else -1
+        return [s for s, f in self.frames.items() if f.anchor is None and s < last]
+
+    def _targets(self, graph: KeyframeGraph, k: int, frame: FrameRecord) -> Targets:
+        seq = graph.seqs[k]
+        if seq not in frame.targets:
+            work = graph.images[k]
+            image = cv2.resize(frame.image, (work.shape[1], work.shape[0]), interpolation=cv2.INTER_LINEAR)
+            ft = core_flow.flow_targets(work, image, graph.flow_params)
+            frame.targets[seq] = Targets(torch.from_numpy(ft.target), torch.from_numpy(ft.confidence))
+        return frame.targets[seq]
+
+    def align(self, graph: KeyframeGraph, seq: int) -> torch.Tensor:
+        """Align frame ``seq`` to its bracketing keyframes; store and return its world_from_cam ``(4, 4)``."""
+        frame = self.frames[seq]
+        a, b = self.bracket(graph, seq)
+        kfs = [k for k in (a, b) if k is not None]
+        if not kfs:
+            raise ValueError(f"frame {seq}: no keyframe to align to")
+        if a is not None and b is not None:
+            span = max(graph.stamps[b] - graph.stamps[a], 1)
+            init = interpolate(graph.poses[a], graph.poses[b], (frame.stamp - graph.stamps[a]) / span)
+        else:
+            init = graph.poses[kfs[0]]
+        tg = [self._targets(graph, k, frame) for k in kfs]
+        dev = graph.device
+        res = motion.align(init, torch.stack([graph.poses[k] for k in kfs]),
+                           torch.stack([graph.disparity[k] for k in kfs]),
+                           torch.stack([t.target for t in tg]).to(dev), torch.stack([t.confidence for t in tg]).to(dev),
+                           graph.intrinsics, self.params)
+        pose = res.pose if res.ok else init
+        if not res.ok:
+            logger.info("frame kept its interpolated pose (weak flow)", extra={"seq": seq})
+        anchor = kfs[0]
+        frame.anchor = graph.seqs[anchor]
+        frame.anchor_from_cam = se3.inverse(graph.poses[anchor]) @ pose
+        return pose
+
+    def pose(self, graph: KeyframeGraph, seq: int) -> torch.Tensor | None:
+        """Current world_from_cam of an aligned frame (its anchor's pose times its relative pose)."""
+        frame = self.frames[seq]
+        if frame.anchor is None or frame.anchor not in graph.seqs:
+            return None
+        return graph.poses[graph.index(frame.anchor)] @ frame.anchor_from_cam
+
+    def anchored_to(self, anchors: set[int]) -> list[int]:
+        return [s for s, f in self.frames.items() if f.anchor in anchors]
+
+    def forget_targets(self, kf_seq: int) -> None:
+        """A keyframe left the graph: targets from it are stale, and frames anchored to it are re-aligned."""
+        for f in self.frames.values():
+            f.targets.pop(kf_seq, None)
+            if f.anchor == kf_seq:
+                f.anchor = f.anchor_from_cam = None

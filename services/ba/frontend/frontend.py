@@ -1,0 +1,289 @@
+"""The BA frontend: keyframes and frames in, graph state and every frame's pose out (no transport).
+
+Per keyframe: before the map exists, keyframes are collected until the first and newest have parallax, then
+a two-view start (essential matrix + triangulation) seeds poses and disparities and a BA refines them. After
+that each new keyframe is aligned motion-only to the previous one, gets temporal and proximity edges, and a
+few BA iterations run over the sliding window (the oldest window pose is the gauge). A redundant second-newest
+keyframe is turned back into a frame. Frames are aligned motion-only to their two bracketing keyframes. At
+end of stream a global BA runs over all keyframes and every frame is aligned again.
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from services.ba.core import flow as core_flow
+from services.ba.core import se3
+from services.ba.frontend import edges, init, motion
+from services.ba.frontend.frames import FramePoses, FrameRecord
+from services.ba.frontend.graph import GRID, KeyframeGraph, grid_intrinsics, working_intrinsics
+from services.ba.frontend.params import FrontendParams
+
+logger = logging.getLogger(__name__)
+
+
+class KeyframeInput(NamedTuple):
+    seq: int
+    t_ns: int
+    image: np.ndarray  # (H, W, 3) uint8 RGB or (H, W) grey, working resolution (multiples of 8)
+    intrinsics: np.ndarray  # (4,) float64 working-resolution (fx, fy, cx, cy)
+    codes: np.ndarray | None = None  # (H/8, W/8, K) feature codes
+    disparity_prior: np.ndarray | None = None  # (H/8, W/8) 1/m, 0 = none
+
+
+class FrameInput(NamedTuple):
+    seq: int
+    t_ns: int
+    image: np.ndarray  # (h', w') uint8 grey (or RGB), same aspect ratio as the working image
+
+
+class GraphUpdate(NamedTuple):
+    kf_seqs: np.ndarray  # (N,) int64 every keyframe
+    poses: np.ndarray  # (N, 4, 4) float64 world_from_cam
+    intrinsics: np.ndarray  # (4,) float64 at working resolution
+    updated_seqs: np.ndarray  # (M,) int64 keyframes whose maps below changed
+    disparities: np.ndarray  # (M, h, w) float32
+    static_weights: np.ndarray  # (M, h, w) float32 ARK weight (1 static, 0 dynamic)
+    confidence: np.ndarray  # (M, h, w) float32 mean flow confidence
+    metric: bool  # a depth prior fixed the scale
+
+
+class PoseUpdate(NamedTuple):
+    frame_seqs: np.ndarray  # (F,) int64
+    stamps_ns: np.ndarray  # (F,) int64
+    poses: np.ndarray  # (F, 4, 4) float64 world_from_cam
+
+
+class Update(NamedTuple):
+    graph: GraphUpdate | None = None
+    poses: PoseUpdate | None = None
+    intrinsics_changed: bool = False
+
+
+class Frontend:
+    """Stateful frontend; see the module docstring. ``device``: where BA tensors live."""
+
+    def __init__(self, params: FrontendParams = FrontendParams(), device: torch.device | str = "cpu"):
+        self.params = params
+        self.device = torch.device(device)
+        self.graph: KeyframeGraph | None = None
+        self.frames = FramePoses(params.motion)
+        self.initialised = False
+        self.metric = False
+        self._focal = 0.0
+        self._size = (0, 0)
+
+    # --- inputs ----------------------------------------------------------------------------------------
+    def add_keyframe(self, kf: KeyframeInput) -> Update:
+        grey = self._check(kf)
+        g = self.graph
+        prior = None if kf.disparity_prior is None else torch.from_numpy(np.asarray(kf.disparity_prior, np.float64))
+        codes = None if kf.codes is None else torch.from_numpy(np.asarray(kf.codes, np.float32))
+        pose, disp = self._predict(prior)
+        k = g.append(kf.seq, kf.t_ns, grey, codes, prior, pose, disp)
+        try:
+            return self._integrate(k)
+        except Exception:
+            if k < len(g) and g.seqs[k] == kf.seq:  # leave the graph as it was before this keyframe
+                g.remove(k)
+            raise
+
+    def _integrate(self, k: int) -> Update:
+        g = self.graph
+        if not self.initialised:
+            return self._try_initialise()
+        self._align_keyframe(k)
+        self._add_proximity(k)
+        window = self._window()
+        g.run(window, g.pairs(window, self.params.graph.temporal_radius), self._ba_params(window))
+        updated = set(window)
+        removed = self._remove_redundant()
+        if removed is not None:
+            updated = {g.index(s) for s in removed if s in g.seqs}
+        return self._update(sorted(updated))
+
+    def add_frame(self, frame: FrameInput) -> Update:
+        image = core_flow.to_grey(np.asarray(frame.image))
+        if self.graph is not None and frame.seq in self.graph.seqs:
+            raise ValueError(f"frame {frame.seq} is already a keyframe")
+        self.frames.add(FrameRecord(frame.seq, frame.t_ns, image))
+        if not self.initialised or frame.seq > self.graph.seqs[-1]:
+            return Update()  # aligned once the keyframe after it exists
+        self.frames.align(self.graph, frame.seq)
+        return Update(poses=self._pose_update([frame.seq]))
+
+    def finish(self) -> Update:
+        """End of stream: global BA over all keyframes, every frame aligned again; the final state."""
+        g = self.graph
+        if g is None or len(g) == 0:
+            return Update()
+        if not self.initialised:
+            self._force_initialise()
+        if len(g) > 1:
+            everything = list(range(len(g)))
+            pairs = sorted(set(g.pairs(everything, self.params.graph.global_radius)))
+            g.run(everything, pairs, self._ba_params(everything, self.params.global_ba))
+        for seq in self.frames.frames:
+            self.frames.align(g, seq)
+        return self._update(list(range(len(g))), every_frame=True)
+
+    # --- keyframes -----------------------------------------------------------------------------------
+    def _check(self, kf: KeyframeInput) -> np.ndarray:
+        grey = core_flow.to_grey(np.asarray(kf.image))
+        height, width = grey.shape
+        if height % GRID or width % GRID:
+            raise ValueError(f"keyframe {kf.seq}: working size {width}x{height} is not a multiple of {GRID}")
+        hw = (height // GRID, width // GRID)
+        for name in ("codes", "disparity_prior"):
+            grid = getattr(kf, name)
+            if grid is not None and np.asarray(grid).shape[:2] != hw:
+                raise ValueError(f"keyframe {kf.seq}: {name} grid {np.asarray(grid).shape[:2]} must be {hw}")
+        if np.asarray(kf.intrinsics).shape != (4,):
+            raise ValueError(f"keyframe {kf.seq}: intrinsics (4,) expected")
+        if self.graph is None:
+            self.graph = KeyframeGraph(grid_intrinsics(kf.intrinsics), hw, self.params.flow, self.device,
+                                       self.params.focal_range)
+            self._size = (width, height)
+            self._focal = float(self.graph.intrinsics[0])
+        elif (width, height) != self._size:
+            raise ValueError(f"keyframe {kf.seq}: working size {width}x{height} differs from {self._size}")
+        elif kf.seq <= self.graph.seqs[-1]:
+            raise ValueError(f"keyframe {kf.seq} is not newer than keyframe {self.graph.seqs[-1]}")
+        return grey
+
+    def _predict(self, prior: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Constant-velocity pose and a constant (or prior) disparity for a new keyframe."""
+        g, dev = self.graph, self.device
+        h, w = g.grid_hw
+        if len(g) == 0:
+            return torch.eye(4, dtype=torch.float64, device=dev), torch.ones(h, w, dtype=torch.float64, device=dev)
+        pose = g.poses[-1]
+        if len(g) >= 2 and self.initialised:
+            pose = pose @ (se3.inverse(g.poses[-2]) @ g.poses[-1])
+        # the previous keyframe's map: neighbouring keyframes see similar structure (road near, sky far)
+        disp = g.disparity[-1].clone() if self.initialised else torch.ones(h, w, dtype=torch.float64, device=dev)
+        if prior is not None and self.metric:
+            disp = torch.where(prior.to(dev) > 0, prior.to(dev), disp)
+        return pose, disp
+
+    def _align_keyframe(self, k: int) -> None:
+        g = self.graph
+        t = g.targets(k - 1, k)
+        res = motion.align(g.poses[k], g.poses[k - 1][None], g.disparity[k - 1][None], t.target[None].to(self.device),
+                           t.confidence[None].to(self.device), g.intrinsics, self.params.motion)
+        if res.ok:
+            g.poses[k] = res.pose
+
+    def _window(self) -> list[int]:
+        n = len(self.graph)
+        return list(range(max(0, n - self.params.graph.window), n))
+
+    def _add_proximity(self, k: int) -> None:
+        gp, g = self.params.graph, self.graph
+        cands = [c for c in self._window() if c < k - gp.temporal_radius]
+        if not cands:
+            return
+        state = g.stacked(cands + [k])
+        last = len(cands)
+        ii = torch.arange(last, device=self.device)
+        dist = edges.induced_flow(state.poses, state.disparity, g.intrinsics, ii, torch.full_like(ii, last))
+        chosen = edges.proximity_pairs(k, cands, dist.cpu(), gp)
+        g.proximity |= {(g.seqs[a], g.seqs[b]) for a, b in chosen}
+
+    def _remove_redundant(self) -> list[int] | None:
+        """If the second-newest keyframe barely moved from the one before, make it a frame again.
+        Returns the seqs of the window keyframes after removal, or None when nothing was removed."""
+        g, gp = self.graph, self.params.graph
+        if len(g) < 4:
+            return None
+        k = len(g) - 2
+        state = g.stacked([k - 1, k])
+        dist = edges.induced_flow(state.poses, state.disparity, g.intrinsics, torch.tensor([0, 1]),
+                                  torch.tensor([1, 0]))
+        if float(dist.mean()) >= gp.remove_max_flow:
+            return None
+        seq = g.seqs[k]
+        logger.info("redundant keyframe turned into a frame", extra={"seq": seq, "flow": float(dist.mean())})
+        self.frames.add(FrameRecord(seq, g.stamps[k], g.images[k]))
+        g.remove(k)
+        self.frames.forget_targets(seq)
+        return [g.seqs[i] for i in self._window()]
+
+    def _ba_params(self, window: list[int], base=None):
+        base = base or self.params.ba
+        focal = (base.optimise_focal and len(window) >= self.params.focal_after
+                 and len(self.graph) <= self.params.focal_until)
+        return dataclasses.replace(base, optimise_focal=focal)
+
+    # --- initialisation ------------------------------------------------------------------------------
+    def _try_initialise(self, force: bool = False) -> Update:
+        p = self.params
+        if not init.start_map(self.graph, p.init, self._ba_params(list(range(len(self.graph)))), p.motion, force):
+            return Update()
+        self.initialised = True
+        self.metric = p.ba.alpha_disp > 0 and any(pr is not None for pr in self.graph.priors)
+        return self._update(list(range(len(self.graph))))
+
+    def _force_initialise(self) -> None:
+        self._try_initialise(force=True)
+        self.initialised = True
+
+    # --- outputs -------------------------------------------------------------------------------------
+    def _update(self, updated: list[int], every_frame: bool = False) -> Update:
+        """Graph state for the keyframes at positions ``updated``; poses of those keyframes, of the frames
+        anchored to them and of frames aligned now (all frames with ``every_frame``)."""
+        g = self.graph
+        aligned = []
+        for seq in self.frames.pending(g):
+            self.frames.align(g, seq)
+            aligned.append(seq)
+        anchors = {g.seqs[k] for k in updated}
+        frame_seqs = list(self.frames.frames) if every_frame else self.frames.anchored_to(anchors) + aligned
+        focal = float(g.intrinsics[0])
+        changed = abs(focal - self._focal) > 1e-6 * abs(self._focal)
+        self._focal = focal
+        graph = GraphUpdate(
+            kf_seqs=np.array(g.seqs, np.int64), poses=self._np_poses(g.poses),
+            intrinsics=working_intrinsics(g.intrinsics), updated_seqs=np.array([g.seqs[k] for k in updated], np.int64),
+            disparities=self._np_maps(g.disparity, updated), static_weights=self._np_maps(g.static, updated),
+            confidence=self._np_maps(g.confidence, updated), metric=self.metric)
+        return Update(graph, self._pose_update(sorted(set(frame_seqs)) + sorted(anchors)), changed)
+
+    def _pose_update(self, frame_seqs: list[int]) -> PoseUpdate | None:
+        g = self.graph
+        seqs, stamps, poses = [], [], []
+        for seq in frame_seqs:
+            if seq in g.seqs:
+                k = g.index(seq)
+                pose, stamp = g.poses[k], g.stamps[k]
+            else:
+                pose, stamp = self.frames.pose(g, seq), self.frames.frames[seq].stamp
+            if pose is not None and bool(torch.isfinite(pose).all()):
+                seqs.append(seq), stamps.append(stamp), poses.append(pose)
+        if not seqs:
+            return None
+        order = np.argsort(seqs)
+        return PoseUpdate(np.array(seqs, np.int64)[order], np.array(stamps, np.int64)[order],
+                          self._np_poses(poses)[order])
+
+    @staticmethod
+    def _np_poses(poses: list[torch.Tensor]) -> np.ndarray:
+        return torch.stack(poses).detach().cpu().numpy().astype(np.float64)
+
+    @staticmethod
+    def _np_maps(maps: list[torch.Tensor], which: list[int]) -> np.ndarray:
+        return torch.stack([maps[k] for k in which]).detach().cpu().numpy().astype(np.float32)
+
+    @property
+    def intrinsics(self) -> np.ndarray | None:
+        """Current (refined) working-resolution intrinsics ``(4,)``, None before the first keyframe."""
+        return None if self.graph is None else working_intrinsics(self.graph.intrinsics)
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """Working (width, height)."""
+        return self._size

@@ -1,0 +1,159 @@
+"""Keyframe storage, cached flow targets and the windowed / global BA calls (pure: no transport)."""
+from __future__ import annotations
+
+import logging
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from services.ba.core import flow as core_flow
+from services.ba.core.ba import BAProblem, BAResult, BAState, run_ba
+from services.ba.core.params import BAParams, FlowParams
+from services.ba.frontend.edges import temporal_pairs
+
+logger = logging.getLogger(__name__)
+GRID = 8  # working pixels per grid cell (docs/CONVENTIONS.md)
+
+
+def grid_intrinsics(work: np.ndarray) -> torch.Tensor:
+    """Working-resolution (fx, fy, cx, cy) -> 1/8-grid intrinsics ``(4,)`` float64 (resize rule, s = 1/8)."""
+    fx, fy, cx, cy = map(float, work)
+    return torch.tensor([fx / GRID, fy / GRID, (cx + 0.5) / GRID - 0.5, (cy + 0.5) / GRID - 0.5], dtype=torch.float64)
+
+
+def working_intrinsics(grid: torch.Tensor) -> np.ndarray:
+    """1/8-grid intrinsics ``(4,)`` -> working-resolution (fx, fy, cx, cy) float64."""
+    fx, fy, cx, cy = map(float, grid)
+    return np.array([fx * GRID, fy * GRID, (cx + 0.5) * GRID - 0.5, (cy + 0.5) * GRID - 0.5])
+
+
+class Targets(NamedTuple):
+    """Flow targets of one directed edge on the grid."""
+
+    target: torch.Tensor  # (h, w, 2) float32 grid coordinates in the target image
+    confidence: torch.Tensor  # (h, w) float32 in [0, 1]
+
+
+class KeyframeGraph:
+    """Keyframes (grey image, codes, prior, pose, disparity) in seq order, proximity edges and a flow cache.
+
+    Keyframes are addressed by their position ``k`` in the list; edges are stored by seq so that removing a
+    keyframe does not renumber them. Poses are world_from_cam float64 on ``device``.
+    """
+
+    def __init__(self, grid_intrinsics: torch.Tensor, grid_hw: tuple[int, int], flow: FlowParams,
+                 device: torch.device, focal_range: tuple[float, float] = (0.5, 2.0)):
+        self.intrinsics = grid_intrinsics.to(device, torch.float64)  # (4,) fx, fy, cx, cy of the grid
+        self.first_focal = float(grid_intrinsics[0])
+        self.focal_range = focal_range  # BA results whose focal leaves this range of the first guess are refused
+        self.grid_hw = grid_hw
+        self.flow_params = flow
+        self.device = device
+        self.seqs: list[int] = []
+        self.stamps: list[int] = []
+        self.images: list[np.ndarray] = []  # (H, W) uint8 grey, working resolution
+        self.codes: list[torch.Tensor | None] = []  # (h, w, K) float32
+        self.priors: list[torch.Tensor | None] = []  # (h, w) float64 disparity prior (0 = none)
+        self.poses: list[torch.Tensor] = []  # (4, 4) float64
+        self.disparity: list[torch.Tensor] = []  # (h, w) float64
+        self.static: list[torch.Tensor] = []  # (h, w) float32 ARK static weight
+        self.confidence: list[torch.Tensor] = []  # (h, w) float32 mean out-edge flow confidence
+        self.proximity: set[tuple[int, int]] = set()  # directed (seq_i, seq_j)
+        self._cache: dict[tuple[int, int], Targets] = {}
+
+    def __len__(self) -> int:
+        return len(self.seqs)
+
+    def index(self, seq: int) -> int:
+        return self.seqs.index(seq)
+
+    def append(self, seq: int, stamp: int, grey: np.ndarray, codes, prior, pose: torch.Tensor,
+               disparity: torch.Tensor) -> int:
+        h, w = self.grid_hw
+        self.seqs.append(seq)
+        self.stamps.append(stamp)
+        self.images.append(grey)
+        self.codes.append(codes)
+        self.priors.append(prior)
+        self.poses.append(pose)
+        self.disparity.append(disparity)
+        self.static.append(torch.ones(h, w))
+        self.confidence.append(torch.zeros(h, w))
+        return len(self.seqs) - 1
+
+    def remove(self, k: int) -> None:
+        """Drop keyframe ``k`` with its proximity edges and cached targets."""
+        seq = self.seqs[k]
+        for store in (self.seqs, self.stamps, self.images, self.codes, self.priors, self.poses, self.disparity,
+                      self.static, self.confidence):
+            del store[k]
+        self.proximity = {e for e in self.proximity if seq not in e}
+        self._cache = {e: t for e, t in self._cache.items() if seq not in e}
+
+    def targets(self, i: int, j: int) -> Targets:
+        """Cached flow targets of keyframe ``i`` into keyframe ``j`` (positions)."""
+        key = (self.seqs[i], self.seqs[j])
+        if key not in self._cache:
+            ft = core_flow.flow_targets(self.images[i], self.images[j], self.flow_params)
+            self._cache[key] = Targets(torch.from_numpy(ft.target), torch.from_numpy(ft.confidence))
+        return self._cache[key]
+
+    def pairs(self, window: list[int], radius: int) -> list[tuple[int, int]]:
+        """Directed edges (positions) inside ``window``: temporal ones and stored proximity ones."""
+        inside = {self.seqs[k]: k for k in window}
+        prox = [(inside[a], inside[b]) for a, b in self.proximity if a in inside and b in inside]
+        return sorted(set(temporal_pairs(window, radius)) | set(prox))
+
+    def stacked(self, window: list[int]) -> BAState:
+        return BAState(torch.stack([self.poses[k] for k in window]),
+                       torch.stack([self.disparity[k] for k in window]), self.intrinsics.clone())
+
+    def run(self, window: list[int], pairs: list[tuple[int, int]], params: BAParams) -> BAResult | None:
+        """BA over the keyframes at positions ``window`` (the first is the gauge) with edges ``pairs``; None (and
+        the state unchanged) when the solve failed or its result is implausible."""
+        local = {k: n for n, k in enumerate(window)}
+        dev = self.device
+        ii = torch.tensor([local[a] for a, _ in pairs], dtype=torch.long, device=dev)
+        jj = torch.tensor([local[b] for _, b in pairs], dtype=torch.long, device=dev)
+        tg = [self.targets(a, b) for a, b in pairs]
+        targets = torch.stack([t.target for t in tg]).to(dev, torch.float64)
+        conf = torch.stack([t.confidence for t in tg]).to(dev, torch.float64)
+        codes = None
+        if all(self.codes[k] is not None for k in window):
+            codes = torch.stack([self.codes[k] for k in window]).to(dev)
+        prior = mask = None
+        if params.alpha_disp > 0 and any(self.priors[k] is not None for k in window):
+            zero = torch.zeros(self.grid_hw, dtype=torch.float64)
+            prior = torch.stack([zero if self.priors[k] is None else self.priors[k] for k in window]).to(dev)
+            mask = (prior > 0).to(torch.float64)
+        start = self.stacked(window)
+        try:
+            result = run_ba(start, BAProblem(ii, jj, targets, conf, codes, prior, mask), params)
+        except (RuntimeError, IndexError) as exc:  # a degenerate window (singular or non-finite): keep its state
+            logger.warning("BA failed; window state kept", extra={"keyframes": len(window), "error": str(exc)})
+            return None
+        if not self._plausible(start, result.state):
+            logger.warning("BA result rejected (non-finite or focal out of range); window state kept",
+                           extra={"keyframes": len(window), "focal": float(result.state.intrinsics[0])})
+            return None
+        self._store(window, result, ii, conf)
+        return result
+
+    def _plausible(self, start: BAState, state: BAState) -> bool:
+        finite = all(bool(torch.isfinite(t).all()) for t in (state.poses, state.disparity, state.intrinsics))
+        ratio = float(state.intrinsics[0] / self.first_focal)
+        return finite and self.focal_range[0] <= ratio <= self.focal_range[1]
+
+    def _store(self, window: list[int], result: BAResult, ii: torch.Tensor, conf: torch.Tensor) -> None:
+        state = result.state
+        n = len(window)
+        counts = torch.zeros(n, device=ii.device, dtype=conf.dtype).index_add_(0, ii, torch.ones_like(ii, dtype=conf.dtype))
+        conf_sum = torch.zeros(n, *conf.shape[1:], device=ii.device, dtype=conf.dtype).index_add_(0, ii, conf)
+        mean_conf = conf_sum / counts.clamp_min(1)[:, None, None]
+        for n_local, k in enumerate(window):
+            self.poses[k] = state.poses[n_local]
+            self.disparity[k] = state.disparity[n_local]
+            self.static[k] = result.static_weight[n_local].float().cpu()
+            self.confidence[k] = mean_conf[n_local].float().cpu()
+        self.intrinsics = state.intrinsics

@@ -1,0 +1,143 @@
+"""Two-view start: relative pose from the essential matrix of dense flow, depth by triangulation."""
+from __future__ import annotations
+
+import dataclasses
+import logging
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+import torch
+
+from services.ba.core.params import BAParams
+from services.ba.frontend import motion
+from services.ba.frontend.edges import temporal_pairs
+from services.ba.frontend.graph import KeyframeGraph, working_intrinsics
+from services.ba.frontend.params import InitParams, MotionParams
+
+logger = logging.getLogger(__name__)
+
+
+class TwoView(NamedTuple):
+    """Second camera relative to the first and the first camera's grid disparity."""
+
+    first_from_second: np.ndarray  # (4, 4) float64 pose of camera 2 in camera 1's frame, |t| = 1
+    disparity: np.ndarray  # (h, w) float64 disparity of camera 1's grid pixels (median where unknown)
+    inliers: int  # essential-matrix inliers
+
+
+def _to_working(grid_xy: np.ndarray) -> np.ndarray:
+    return (grid_xy + 0.5) * 8.0 - 0.5
+
+
+def two_view(targets: np.ndarray, confidence: np.ndarray, intrinsics_work: np.ndarray,
+             params: InitParams) -> TwoView | None:
+    """Relative pose of two keyframes from the grid flow ``targets`` of the first into the second.
+
+    Args:
+        targets: ``(h, w, 2)`` grid coordinates in keyframe 2 of keyframe 1's grid pixels.
+        confidence: ``(h, w)`` flow confidence.
+        intrinsics_work: ``(4,)`` working-resolution intrinsics (fx, fy, cx, cy).
+    Returns:
+        :class:`TwoView`, or None when the geometry is too weak (too few inliers or points behind).
+    """
+    h, w = confidence.shape
+    if targets.shape != (h, w, 2):
+        raise ValueError(f"targets ({h},{w},2) expected, got {targets.shape}")
+    rows, cols = np.mgrid[0:h, 0:w]
+    src = _to_working(np.stack([cols, rows], -1).reshape(-1, 2).astype(np.float64))
+    dst = _to_working(targets.reshape(-1, 2).astype(np.float64))
+    keep = confidence.reshape(-1) >= params.min_confidence
+    if keep.sum() < params.min_inliers:
+        return None
+    fx, fy, cx, cy = intrinsics_work
+    cam = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], np.float64)
+    ess, mask = cv2.findEssentialMat(src[keep], dst[keep], cam, cv2.RANSAC, 0.999, params.ransac_px)
+    if ess is None or ess.shape != (3, 3):
+        return None
+    n_in, rot, trans, mask = cv2.recoverPose(ess, src[keep], dst[keep], cam, mask=mask)
+    if n_in < params.min_inliers:
+        return None
+    second_from_first = np.eye(4)
+    second_from_first[:3, :3], second_from_first[:3, 3] = rot, trans[:, 0]
+    depth = _triangulate(src[keep], dst[keep], cam, second_from_first)
+    good = (mask.reshape(-1) > 0) & (depth > 0) & np.isfinite(depth)
+    if good.sum() < params.min_inliers:
+        return None
+    disparity = np.full(h * w, 1.0 / np.median(depth[good]))
+    disparity[np.flatnonzero(keep)[good]] = 1.0 / depth[good]
+    return TwoView(np.linalg.inv(second_from_first), disparity.reshape(h, w), int(good.sum()))
+
+
+def _triangulate(src: np.ndarray, dst: np.ndarray, cam: np.ndarray, second_from_first: np.ndarray) -> np.ndarray:
+    """Depth in camera 1 of correspondences ``(M, 2)`` (working px); negative/inf where degenerate."""
+    p1 = cam @ np.eye(4)[:3]
+    p2 = cam @ second_from_first[:3]
+    pts = cv2.triangulatePoints(p1, p2, src.T.copy(), dst.T.copy())
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z1 = pts[2] / pts[3]
+        z2 = (second_from_first[2, :3] @ (pts[:3] / pts[3])) + second_from_first[2, 3]
+    return np.where(z2 > 0, z1, -1.0)
+
+
+def start_map(graph: KeyframeGraph, params: InitParams, ba_params: BAParams, motion_params: MotionParams,
+              force: bool = False) -> bool:
+    """Seed every keyframe of ``graph`` from a two-view
+    start between its first and newest keyframe, align the ones between motion-only, and run a BA.
+
+    Returns False (graph unchanged) when there is not yet enough parallax; ``force`` tries with what there is.
+    """
+    n = len(graph)
+    if n < 2 or (n < params.min_keyframes and not force):
+        return False
+    first, last = 0, n - 1
+    tg = graph.targets(first, last)
+    flow = _mean_grid_flow(tg.target.numpy())
+    if flow < params.min_flow and not force:
+        return False
+    start = two_view(tg.target.numpy(), tg.confidence.numpy(), working_intrinsics(graph.intrinsics), params)
+    if start is None:
+        if not force:
+            return False
+        logger.warning("two-view start failed at end of stream; keyframes keep identity poses")
+        return True
+    dev, dtype = graph.device, torch.float64
+    disp = torch.from_numpy(start.disparity).to(dev, dtype)
+    prior = graph.priors[first]
+    if prior is not None and ba_params.alpha_disp > 0 and bool((prior > 0).any()):
+        scale = float(prior[prior > 0].median()) / float(disp[prior.to(dev) > 0].median())
+        disp = disp * scale
+        start = start._replace(first_from_second=_scaled(start.first_from_second, 1.0 / scale, rotate=False))
+    graph.poses[first] = torch.eye(4, dtype=dtype, device=dev)
+    graph.disparity[first] = disp
+    graph.poses[last] = torch.from_numpy(start.first_from_second).to(dev, dtype)
+    median = torch.full_like(disp, float(disp.median()))
+    for k in range(1, n):
+        graph.disparity[k] = median.clone()
+        if k == last:
+            continue
+        t = graph.targets(first, k)
+        frac = k / last
+        init = torch.from_numpy(_scaled(start.first_from_second, frac)).to(dev, dtype)
+        res = motion.align(init, graph.poses[first][None], disp[None], t.target[None].to(dev),
+                           t.confidence[None].to(dev), graph.intrinsics, motion_params)
+        graph.poses[k] = res.pose if res.ok else init
+    everything = list(range(n))
+    graph.run(everything, temporal_pairs(everything, 2), dataclasses.replace(ba_params, iterations=params.iterations))
+    logger.info("map initialised", extra={"keyframes": n, "inliers": start.inliers, "flow": round(flow, 2)})
+    return True
+
+
+def _mean_grid_flow(targets: np.ndarray) -> float:
+    h, w = targets.shape[:2]
+    rows, cols = np.mgrid[0:h, 0:w]
+    return float(np.linalg.norm(targets - np.stack([cols, rows], -1), axis=-1).mean())
+
+
+def _scaled(pose: np.ndarray, frac: float, rotate: bool = True) -> np.ndarray:
+    """Translation scaled by ``frac``; with ``rotate`` the rotation angle too (a point along the motion)."""
+    out = np.eye(4)
+    rvec, _ = cv2.Rodrigues(pose[:3, :3])
+    out[:3, :3] = cv2.Rodrigues(rvec * frac)[0] if rotate else pose[:3, :3]
+    out[:3, 3] = pose[:3, 3] * frac
+    return out

@@ -1,0 +1,57 @@
+"""Parameters of the BA frontend (graph management, initialisation, motion-only alignment)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from services.ba.core.params import BAParams, FlowParams
+
+
+@dataclass(frozen=True)
+class MotionParams:
+    """Motion-only (pose-only) Gauss-Newton alignment of a frame to fixed keyframes."""
+
+    iterations: int = 8  # Gauss-Newton iterations
+    huber: float = 1.0  # Huber threshold on the flow residual norm (grid px)
+    damping: float = 1e-6  # relative Levenberg damping of the 6x6 normal matrix
+    min_weight: float = 20.0  # below this total weight (pixel count) the alignment is refused
+
+
+@dataclass(frozen=True)
+class InitParams:
+    """Two-view start of the map once enough keyframes have parallax."""
+
+    min_keyframes: int = 4  # keyframes collected before the first attempt
+    min_flow: float = 2.0  # mean grid flow (grid px) between the first and the newest keyframe
+    min_inliers: int = 50  # essential-matrix inliers required
+    ransac_px: float = 1.0  # RANSAC threshold of the essential matrix, working-resolution pixels
+    min_confidence: float = 0.5  # flow confidence a grid cell needs to enter the two-view estimate
+    iterations: int = 15  # BA iterations over the initial keyframes
+
+
+@dataclass(frozen=True)
+class GraphParams:
+    """Edges of the keyframe graph."""
+
+    window: int = 25  # keyframes in the sliding window (the oldest one is the gauge)
+    temporal_radius: int = 2  # temporal edges connect keyframes at most this far apart (both directions)
+    proximity_max_flow: float = 10.0  # candidate proximity edge: mean induced flow below this (grid px)
+    proximity_max_edges: int = 3  # proximity edges added per new keyframe
+    proximity_nms: int = 2  # a chosen proximity edge suppresses candidates this close in keyframe index
+    remove_max_flow: float = 1.0  # the newest keyframe is redundant when its flow to the previous is below this
+    global_radius: int = 3  # temporal radius of the global BA's own edge set
+
+
+@dataclass(frozen=True)
+class FrontendParams:
+    """Everything the frontend needs; the service builds it from its settings."""
+
+    graph: GraphParams = field(default_factory=GraphParams)
+    init: InitParams = field(default_factory=InitParams)
+    motion: MotionParams = field(default_factory=MotionParams)
+    ba: BAParams = field(default_factory=lambda: BAParams(iterations=4, optimise_focal=True))  # per new keyframe
+    global_ba: BAParams = field(default_factory=lambda: BAParams(iterations=10, optimise_focal=True))  # end
+    flow: FlowParams = field(default_factory=FlowParams)
+    focal_after: int = 6  # the focal length is refined once the window holds this many keyframes
+    focal_until: int = 30  # ... and frozen after this many keyframes: under long forward motion focal and depth
+    # trade off, and the focal drifts (KITTI 07: 455 -> 371 working px over frames 60-100 when never frozen)
+    focal_range: tuple[float, float] = (0.6, 1.6)  # BA results with focal outside this x the first guess are refused

@@ -1,0 +1,151 @@
+"""BA service: ``keyframe`` / ``frame_lite`` / ``pca`` / ``eos`` in; ``graph``, ``pose``, ``intrinsics`` and
+``eos`` out. One handler per message kind; ``run`` only receives, handles and publishes.
+
+At the features stage's end of stream the frontend runs its global BA and the final ``graph`` and ``pose``
+(``final=True``) go out before this stage's own ``eos``.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from services.common import keys
+from services.common.bus import Bus
+from services.common.schema import Eos, FrameLite, Graph, Intrinsics, Keyframe, Message, PcaBasis, Poses
+from services.ba.frontend.frontend import FrameInput, Frontend, KeyframeInput, Update
+from services.ba.settings import BaSettings
+
+log = logging.getLogger(__name__)
+POLL_S = 0.05
+
+Outputs = list[tuple[str, Message]]
+
+
+@dataclass
+class BaState:
+    frontend: Frontend
+    stream: str
+    pca_version: int = -1
+    last_seq: int = -1  # highest frame seq seen (keyframe or lite)
+    keyframes: int = 0  # keyframes taken into the graph in this stream
+    keyframes_seen: int = 0  # keyframe messages received in this stream (taken or refused)
+    rejected: Counter = field(default_factory=Counter)  # reason -> messages refused (logged, never fatal)
+
+
+def build_state(cfg: BaSettings) -> BaState:
+    torch.set_num_threads(cfg.threads)
+    return BaState(Frontend(cfg.frontend_params(), cfg.torch_device()), cfg.stream)
+
+
+def handle_keyframe(state: BaState, msg: Keyframe, cfg: BaSettings) -> Outputs:
+    if msg.codes is None:  # geometry still counts; without codes the window falls back to the fixed kernel
+        state.rejected["keyframe_without_codes"] += 1
+        log.warning("keyframe without codes: no adaptive kernel for it", extra={"stream": msg.stream, "seq": msg.seq})
+    update = state.frontend.add_keyframe(KeyframeInput(msg.seq, msg.t_ns, msg.image, np.asarray(msg.intrinsics),
+                                                       msg.codes, msg.disparity_prior))
+    state.keyframes += 1
+    state.last_seq = max(state.last_seq, msg.seq)
+    return _outputs(state, msg, update, final=False)
+
+
+def handle_frame_lite(state: BaState, msg: FrameLite, cfg: BaSettings) -> Outputs:
+    update = state.frontend.add_frame(FrameInput(msg.seq, msg.t_ns, msg.image))
+    state.last_seq = max(state.last_seq, msg.seq)
+    return _outputs(state, msg, update, final=False)
+
+
+def handle_pca(state: BaState, msg: PcaBasis, cfg: BaSettings) -> Outputs:
+    if msg.version != state.pca_version:
+        log.info("pca basis", extra={"stream": msg.stream, "version": msg.version, "backbone": msg.backbone})
+    state.pca_version = msg.version
+    return []
+
+
+def handle_eos(state: BaState, msg: Eos, cfg: BaSettings) -> Outputs:
+    """Features ended: global BA, final graph and poses, then this stage's EOS; the state is reset."""
+    if msg.stage != "features":
+        return []
+    log.info("end of stream: global BA", extra={"stream": msg.stream, "seq": msg.seq, "keyframes": state.keyframes})
+    try:
+        outputs = _outputs(state, msg, state.frontend.finish(), final=True)
+    except (ValueError, RuntimeError):  # the stream must still end downstream
+        log.exception("global BA failed; last online state stands", extra={"stream": msg.stream, "seq": msg.seq})
+        state.rejected["global_ba"] += 1
+        outputs = []
+    eos = Eos(msg.stream, max(state.last_seq, msg.seq), time.time_ns(), stage="ba", count=state.keyframes,
+              reason=msg.reason)
+    state.frontend = Frontend(state.frontend.params, state.frontend.device)
+    state.keyframes, state.keyframes_seen, state.last_seq = 0, 0, -1
+    return outputs + [(keys.topic(msg.stream, keys.EOS), eos)]
+
+
+def _outputs(state: BaState, msg: Message, update: Update, final: bool) -> Outputs:
+    out: Outputs = []
+    fe = state.frontend
+    width, height = fe.size
+    if update.graph is not None:
+        g = update.graph
+        out.append((keys.topic(msg.stream, keys.GRAPH), Graph(
+            msg.stream, msg.seq, msg.t_ns, kf_seqs=g.kf_seqs, poses=g.poses, intrinsics=g.intrinsics, width=width,
+            height=height, updated_seqs=g.updated_seqs, disparities=g.disparities, static_weights=g.static_weights,
+            confidence=g.confidence, metric=g.metric, final=final)))
+    if update.poses is not None:
+        p = update.poses
+        out.append((keys.topic(msg.stream, keys.POSE), Poses(msg.stream, msg.seq, msg.t_ns, frame_seqs=p.frame_seqs,
+                                                             stamps_ns=p.stamps_ns, poses=p.poses, final=final)))
+    if update.intrinsics_changed or (final and fe.intrinsics is not None):
+        out.append((keys.topic(msg.stream, keys.INTRINSICS), Intrinsics(
+            msg.stream, msg.seq, msg.t_ns, intrinsics=fe.intrinsics, width=width, height=height)))
+    return out
+
+
+HANDLERS = {Keyframe: handle_keyframe, FrameLite: handle_frame_lite, PcaBasis: handle_pca, Eos: handle_eos}
+
+
+def handle(state: BaState, msg: Message, cfg: BaSettings) -> Outputs:
+    """The error boundary of one message: bad input is logged with its seq, counted, and the loop goes on."""
+    if isinstance(msg, Keyframe):
+        state.keyframes_seen += 1
+    try:
+        return HANDLERS[type(msg)](state, msg, cfg)
+    except (ValueError, RuntimeError, KeyError, IndexError) as exc:
+        state.rejected[msg.KIND] += 1
+        log.warning("message rejected", extra={"stream": msg.stream, "seq": msg.seq, "kind": msg.KIND,
+                                               "error": str(exc)})
+        return []
+
+
+def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None = None) -> BaState:
+    """Serve stream ``cfg.stream`` until ``stop`` is set."""
+    state = state or build_state(cfg)
+    topic = lambda name: keys.topic(cfg.stream, name)  # noqa: E731
+    inbox = bus.inbox({topic(keys.KEYFRAME): [Keyframe], topic(keys.FRAME_LITE): [FrameLite],
+                       topic(keys.PCA): [PcaBasis], topic(keys.EOS): [Eos]}, maxsize=cfg.inbox_size)
+    bus.ready()
+    log.info("ba ready", extra={"stream": cfg.stream, "device": str(state.frontend.device)})
+    eos: tuple[Eos, float] | None = None  # features' EOS waiting for the keyframes still in flight
+    while not stop.is_set():
+        delivery = inbox.get(POLL_S)
+        msg = delivery.msg if delivery is not None else None
+        if isinstance(msg, Eos) and msg.stage == "features":
+            eos, msg = (msg, time.monotonic() + cfg.eos_wait_s), None
+        if msg is not None:
+            for key, out in handle(state, msg, cfg):
+                bus.publish(key, out)
+        if eos is not None and (_stream_complete(state, eos[0], inbox.qsize()) or time.monotonic() > eos[1]):
+            for key, out in handle(state, eos[0], cfg):
+                bus.publish(key, out)
+            eos = None
+    return state
+
+
+def _stream_complete(state: BaState, eos: Eos, queued: int) -> bool:
+    """Zenoh keeps order per key, not across keys: the EOS can overtake the last keyframes. It is handled once
+    every keyframe features announced (its ``count``) has arrived and nothing else is queued."""
+    return state.keyframes_seen >= eos.count and queued == 0

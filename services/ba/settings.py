@@ -1,0 +1,65 @@
+"""Deployment settings of the BA service (``KMVIPE_BA_*``), built once per process.
+
+The BA-core fields (robust kernel, iterations, flow preset, ...) come from :class:`services.ba.config.BASettings`;
+this class adds the service and frontend ones and turns everything into :class:`FrontendParams`.
+"""
+from __future__ import annotations
+
+from pydantic_settings import SettingsConfigDict
+
+from services.ba.config import BASettings
+from services.ba.frontend.params import FrontendParams, GraphParams, InitParams, MotionParams
+
+
+class BaSettings(BASettings):
+    """BA service settings: the core's plus stream, threads and frontend graph management."""
+
+    model_config = SettingsConfigDict(env_prefix="KMVIPE_BA_", env_file=".env", extra="ignore")
+
+    stream: str = "cam0"
+    """Stream name ``<s>`` in ``kmvipe/<s>/...``."""
+    threads: int = 2
+    """CPU threads for torch (2 on the reference machine)."""
+    iterations: int = 4
+    """LM iterations of the window BA per new keyframe."""
+    global_iterations: int = 20
+    """LM iterations of the end-of-stream global BA."""
+    fixed_alpha: float = 0.0
+    """Barron shape without codes: Cauchy (KITTI 07, 60 frames: ATE 1.37 m with L2, 0.34 m with Cauchy, c = 0.2)."""
+    alpha_static: float = 0.0
+    """ARK shape of consistent pixels: Cauchy too, since DIS flow has outliers on static content as well."""
+    robust_scale: float = 0.2
+    """Barron scale c in grid pixels."""
+    focal_until: int = FrontendParams.focal_until
+    """Freeze the focal length after this many keyframes."""
+    init_keyframes: int = InitParams.min_keyframes
+    """Keyframes collected before the two-view start is tried."""
+    init_min_flow: float = InitParams.min_flow
+    """Mean grid flow (grid px) between the first and newest keyframe needed to start."""
+    proximity_max_flow: float = GraphParams.proximity_max_flow
+    """Proximity-edge candidates: induced flow below this (grid px)."""
+    proximity_max_edges: int = GraphParams.proximity_max_edges
+    """Proximity edges per new keyframe."""
+    remove_max_flow: float = GraphParams.remove_max_flow
+    """A second-newest keyframe whose flow to its predecessor is below this (grid px) is removed."""
+    global_radius: int = GraphParams.global_radius
+    """Temporal radius of the end-of-stream global BA."""
+    focal_after: int = FrontendParams.focal_after
+    """Refine the focal length once the window holds this many keyframes."""
+    motion_huber: float = MotionParams.huber
+    """Huber threshold of motion-only alignment (grid px)."""
+    eos_wait_s: float = 30.0
+    """How long features' end of stream waits for keyframes it announced that have not arrived."""
+    inbox_size: int = 4096
+    """Messages buffered between the bus and the service loop."""
+
+    def frontend_params(self) -> FrontendParams:
+        """The frozen parameters of :class:`services.ba.frontend.frontend.Frontend`."""
+        graph = GraphParams(window=self.window, temporal_radius=self.temporal_radius,
+                            proximity_max_flow=self.proximity_max_flow, proximity_max_edges=self.proximity_max_edges,
+                            remove_max_flow=self.remove_max_flow, global_radius=self.global_radius)
+        return FrontendParams(
+            graph=graph, init=InitParams(min_keyframes=self.init_keyframes, min_flow=self.init_min_flow),
+            motion=MotionParams(huber=self.motion_huber), ba=self.ba_params(),
+            global_ba=self.ba_params(global_ba=True), flow=self.flow_params(), focal_after=self.focal_after,
+            focal_until=self.focal_until)

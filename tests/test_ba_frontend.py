@@ -1,0 +1,119 @@
+"""BA frontend pieces on exact synthetic geometry: motion-only alignment, two-view start, edge selection,
+input validation."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from services.ba.core import se3, synthetic
+from services.ba.frontend import edges, init, motion
+from services.ba.frontend.frames import interpolate
+from services.ba.frontend.frontend import FrameInput, Frontend, KeyframeInput
+from services.ba.frontend.graph import grid_intrinsics, working_intrinsics
+from services.ba.frontend.params import GraphParams, InitParams, MotionParams
+
+
+def _rot_deg(a: torch.Tensor, b: torch.Tensor) -> float:
+    return math.degrees(float(se3.so3_log(a[:3, :3].T @ b[:3, :3]).norm()))
+
+
+def test_motion_only_alignment_recovers_a_perturbed_pose():
+    win = synthetic.make_window(n=3, h=24, w=32, seed=4, surface="room")
+    truth, prob = win.truth, win.problem
+    # edges 0->2 and 1->2: camera 2 seen from two fixed keyframes with their true disparities
+    rows = [int(e) for e in range(len(prob.ii)) if int(prob.jj[e]) == 2]
+    start = synthetic.perturb_poses(truth.poses, 0.05, 2.0, torch.Generator().manual_seed(1))[2]
+    assert float((start[:3, 3] - truth.poses[2, :3, 3]).norm()) > 0.04
+    res = motion.align(start, truth.poses[prob.ii[rows]], truth.disparity[prob.ii[rows]], prob.targets[rows],
+                       prob.confidence[rows], truth.intrinsics, MotionParams(iterations=10))
+    assert res.ok and res.rms < 1e-6
+    assert float((res.pose[:3, 3] - truth.poses[2, :3, 3]).norm()) < 1e-6
+    assert _rot_deg(res.pose, truth.poses[2]) < 1e-5
+
+
+def test_motion_only_alignment_refuses_without_evidence():
+    win = synthetic.make_window(n=2, h=8, w=8, seed=0, surface="room")
+    t = win.problem
+    res = motion.align(win.truth.poses[1], win.truth.poses[:1], win.truth.disparity[:1], t.targets[:1],
+                       torch.zeros_like(t.confidence[:1]), win.truth.intrinsics, MotionParams())
+    assert not res.ok
+    assert torch.equal(res.pose, win.truth.poses[1])
+
+
+def test_two_view_start_finds_the_motion_direction_and_depth_ratios():
+    win = synthetic.make_window(n=4, h=24, w=32, seed=5, surface="room", step=0.15)
+    truth, prob = win.truth, win.problem
+    e = [k for k in range(len(prob.ii)) if int(prob.ii[k]) == 0 and int(prob.jj[k]) == 2][0]
+    start = init.two_view(prob.targets[e].numpy(), prob.confidence[e].numpy(),
+                          working_intrinsics(truth.intrinsics), InitParams(min_inliers=20))
+    assert start is not None
+    rel = (se3.inverse(truth.poses[0]) @ truth.poses[2]).numpy()
+    direction = rel[:3, 3] / np.linalg.norm(rel[:3, 3])
+    assert float(direction @ start.first_from_second[:3, 3]) > 0.999
+    assert _rot_deg(torch.from_numpy(start.first_from_second), torch.from_numpy(rel)) < 0.05
+    # |t| = 1, so disparity * |t_true| is the true disparity
+    ratio = start.disparity / truth.disparity[0].numpy()
+    seen = prob.confidence[e].numpy() > 0.5
+    assert np.std(ratio[seen]) / np.mean(ratio[seen]) < 1e-3
+
+
+def test_temporal_and_proximity_edges():
+    assert set(edges.temporal_pairs([3, 4, 5], 1)) == {(4, 3), (3, 4), (5, 4), (4, 5)}
+    params = GraphParams(proximity_max_flow=5.0, proximity_max_edges=2, proximity_nms=1)
+    cands = [0, 1, 2, 5, 6]
+    flow = torch.tensor([4.0, 1.0, 1.5, 2.0, 9.0])
+    pairs = edges.proximity_pairs(10, cands, flow, params)
+    # 1 is best; 2 and 0 are suppressed by it (nms 1); 5 is next; 6 is above the flow limit
+    assert set(pairs) == {(10, 1), (1, 10), (10, 5), (5, 10)}
+
+
+def test_induced_flow_is_zero_for_identical_cameras_and_grows_with_motion():
+    win = synthetic.make_window(n=3, h=12, w=16, seed=0, surface="room")
+    poses = win.truth.poses.clone()
+    poses[1] = poses[0]
+    flow = edges.induced_flow(poses, win.truth.disparity, win.truth.intrinsics, torch.tensor([0, 0]),
+                              torch.tensor([1, 2]))
+    assert float(flow[0]) < 1e-9 and float(flow[1]) > 0.5
+
+
+def test_interpolation_hits_the_endpoints_and_the_midpoint():
+    a = synthetic.trajectory(2, torch.Generator().manual_seed(0), step=0.3, turn_deg=10.0)
+    assert torch.allclose(interpolate(a[0], a[1], 0.0), a[0], atol=1e-12)
+    assert torch.allclose(interpolate(a[0], a[1], 1.0), a[1], atol=1e-12)
+    mid = interpolate(a[0], a[1], 0.5)
+    assert torch.allclose(interpolate(mid, a[1], 1.0), a[1], atol=1e-12)
+    assert abs(_rot_deg(a[0], mid) - _rot_deg(mid, a[1])) < 1e-9
+
+
+def test_grid_intrinsics_round_trip():
+    work = np.array([443.4, 443.4, 255.5, 191.5])
+    grid = grid_intrinsics(work)
+    assert float(grid[2]) == pytest.approx(31.5) and float(grid[3]) == pytest.approx(23.5)
+    np.testing.assert_allclose(working_intrinsics(grid), work)
+
+
+def _keyframe(seq: int, size=(64, 96), grid=None, codes_k=8) -> KeyframeInput:
+    rng = np.random.default_rng(seq)
+    h, w = size
+    gh, gw = grid or (h // 8, w // 8)
+    return KeyframeInput(seq, seq * 100, rng.integers(0, 255, (h, w, 3), dtype=np.uint8),
+                         np.array([80.0, 80.0, w / 2 - 0.5, h / 2 - 0.5]), np.ones((gh, gw, codes_k), np.float16))
+
+
+def test_bad_keyframes_are_refused_and_leave_the_graph_as_it_was():
+    fe = Frontend()
+    fe.add_keyframe(_keyframe(0))
+    with pytest.raises(ValueError, match="codes grid"):
+        fe.add_keyframe(_keyframe(1, grid=(5, 5)))
+    with pytest.raises(ValueError, match="differs"):
+        fe.add_keyframe(_keyframe(2, size=(72, 96)))
+    with pytest.raises(ValueError, match="multiple of 8"):
+        fe.add_keyframe(_keyframe(3, size=(60, 96)))
+    with pytest.raises(ValueError, match="not newer"):
+        fe.add_keyframe(_keyframe(0))
+    assert fe.graph.seqs == [0]
+    with pytest.raises(ValueError, match="already a keyframe"):
+        fe.add_frame(FrameInput(0, 0, np.zeros((32, 48), np.uint8)))
