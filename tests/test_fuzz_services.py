@@ -142,3 +142,25 @@ def test_mapstore_survives_garbage_and_still_stores_a_keyframe(unix_endpoint, tm
             _, log = mapstore.communicate(timeout=30)
     assert ok, f"the valid keyframe was not stored and queryable within 60 s ({last}); mapstore log:\n{log[-3000:]}"
     assert "dropped bad payload" in log and log.count("dropped bad payload") < 20
+
+
+@pytest.mark.slow
+def test_ba_survives_garbage_and_still_ends_the_stream(unix_endpoint):
+    stream = "fuzzb"
+    with Bus(BusSettings(mode="peer", listen=[unix_endpoint]), "features", "fuzzer") as bus:
+        out = bus.inbox({keys.topic(stream, keys.EOS): [Eos]})
+        ba = _start_service("ba", unix_endpoint, {"KMVIPE_BA_STREAM": stream})
+        try:
+            wait_until(lambda: "ba" in bus.alive(timeout=0.2) or ba.poll() is not None, 60, "ba up")
+            valid = [Credit(stream, 5, 0).encode(), Frame(stream, 0, 0, 2, 1, jpeg=b"\xff\xd8").encode()]
+            _fuzz_keys(bus, [keys.KEYFRAME, keys.FRAME_LITE, keys.PCA, keys.EOS], stream, valid)
+            assert ba.poll() is None, "ba died of bad payloads"
+            bus.publish(keys.topic(stream, keys.EOS), Eos(stream, 3, 0, stage="features", count=0))
+            got = out.get(timeout=60)
+            while got is not None and got.msg.stage != "ba":
+                got = out.get(timeout=60)
+        finally:
+            ba.terminate()
+            _, log = ba.communicate(timeout=30)
+    assert got is not None and got.msg.stage == "ba" and got.msg.seq == 3, log
+    assert "dropped bad payload" in log and log.count("dropped bad payload") < 20

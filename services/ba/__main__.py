@@ -5,25 +5,16 @@ import sys
 
 from services.ba.service import build_state, run
 from services.ba.settings import BaSettings
-from services.common.bus import Bus
-from services.common.config import BusSettings
-from services.common.errors import KmVipeError
-from services.common.lifecycle import stop_on_signals
-from services.common.logs import setup_logging
+from services.common.service_main import service_main
+
+
+def _body(bus, stop) -> None:
+    cfg = BaSettings()
+    run(cfg, bus, stop, build_state(cfg))
 
 
 def main(argv: list[str] | None = None) -> int:
-    setup_logging("ba")
-    stop = stop_on_signals()
-    cfg = BaSettings()
-    try:
-        state = build_state(cfg)
-        with Bus(BusSettings(), "ba") as bus:
-            run(cfg, bus, stop, state)
-    except KmVipeError as exc:
-        print(f"ba: {exc}", file=sys.stderr)
-        return 2
-    return 0
+    return service_main("ba", _body)
 
 
 if __name__ == "__main__":
