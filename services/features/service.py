@@ -37,11 +37,13 @@ class FeaturesState:
     stream: str
     last_seq: int = -1  # highest frame seq handled (credit is granted beyond it)
     last_keyframe_seq: int = -1
-    last_size: tuple[int, int] = (0, 0)  # original (width, height) of the latest frame
+    last_frame: tuple[int, int, int] = (0, 0, 0)  # original (width, height, t_ns) of the latest frame
     basis: CoreBasis | None = None
     published: int = 0
     bad_frames: int = 0
-    sizes: dict[int, tuple[int, int]] = field(default_factory=dict)  # keyframe seq -> original (width, height)
+    # keyframe seq -> (original width, height, t_ns): keyframes may wait for the PCA basis, so what leaves later
+    # must carry its own size and time, not those of the frame that released it
+    pending: dict[int, tuple[int, int, int]] = field(default_factory=dict)
 
 
 def build_state(cfg: FeaturesSettings) -> FeaturesState:
@@ -68,7 +70,7 @@ def decode_image(msg: Frame) -> np.ndarray:
 
 def handle_frame(state: FeaturesState, msg: Frame, cfg: FeaturesSettings) -> Outputs:
     state.last_seq = max(state.last_seq, msg.seq)
-    state.last_size = (msg.width, msg.height)
+    state.last_frame = (msg.width, msg.height, msg.t_ns)
     try:
         image = decode_image(msg)
     except ValueError as exc:
@@ -82,8 +84,8 @@ def handle_frame(state: FeaturesState, msg: Frame, cfg: FeaturesSettings) -> Out
                          ref_seq=state.last_keyframe_seq)
         return [(keys.topic(msg.stream, keys.FRAME_LITE), lite)]
     state.last_keyframe_seq = out.seq
-    state.sizes[out.seq] = (msg.width, msg.height)
-    return _coded(state, msg.stream, msg.t_ns, *state.codes.add(out))
+    state.pending[out.seq] = (msg.width, msg.height, msg.t_ns)
+    return _coded(state, msg.stream, *state.codes.add(out))
 
 
 def handle_intrinsics(state: FeaturesState, msg: Intrinsics, cfg: FeaturesSettings) -> Outputs:
@@ -98,21 +100,21 @@ def handle_eos(state: FeaturesState, msg: Eos, cfg: FeaturesSettings) -> Outputs
     outputs: Outputs = []
     last = state.core.promote_last()
     if last is not None:
-        state.sizes[last.seq] = state.last_size
-        outputs += _coded(state, msg.stream, msg.t_ns, *state.codes.add(last))
-    outputs += _coded(state, msg.stream, msg.t_ns, *state.codes.flush())
+        state.pending[last.seq] = state.last_frame
+        outputs += _coded(state, msg.stream, *state.codes.add(last))
+    outputs += _coded(state, msg.stream, *state.codes.flush())
     eos = Eos(msg.stream, msg.seq, time.time_ns(), stage="features", count=state.published, reason=msg.reason)
     return outputs + [(keys.topic(msg.stream, keys.EOS), eos)]
 
 
-def _coded(state: FeaturesState, stream: str, t_ns: int, basis: CoreBasis | None,
+def _coded(state: FeaturesState, stream: str, basis: CoreBasis | None,
            ready: list[tuple[KeyframeOut, np.ndarray]]) -> Outputs:
     outputs: Outputs = []
     if basis is not None:
         state.basis = basis
-        outputs.append((keys.topic(stream, keys.PCA), pca_message(stream, basis)))
+        outputs.append((keys.topic(stream, keys.PCA), pca_message(stream, basis, ready[0][0].seq if ready else 0)))
     for kf, codes in ready:
-        w, h = state.sizes.pop(kf.seq)
+        w, h, t_ns = state.pending.pop(kf.seq)
         disparity = None if kf.disparity is None else kf.disparity.astype(np.float32)
         outputs.append((keys.topic(stream, keys.KEYFRAME), Keyframe(
             stream, kf.seq, t_ns, image=kf.image, intrinsics=np.array(kf.intrinsics, np.float64), orig_width=w,
@@ -122,8 +124,8 @@ def _coded(state: FeaturesState, stream: str, t_ns: int, basis: CoreBasis | None
     return outputs
 
 
-def pca_message(stream: str, basis: CoreBasis) -> PcaBasis:
-    return PcaBasis(stream, basis.version, time.time_ns(), version=basis.version, backbone=basis.backbone,
+def pca_message(stream: str, basis: CoreBasis, seq: int = 0) -> PcaBasis:
+    return PcaBasis(stream, seq, time.time_ns(), version=basis.version, backbone=basis.backbone,
                     mean=basis.mean.astype(np.float32), components=basis.components.astype(np.float32),
                     explained_variance=basis.explained_variance.astype(np.float32))
 

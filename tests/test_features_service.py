@@ -1,0 +1,34 @@
+"""The features service's handlers with a tiny random DINOv2 from the registry: keyframes that wait for the
+PCA basis leave with their own timestamp and size, and the EOS follows the last keyframe."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("transformers")
+
+from services.common.models.tiny import write_tiny_model  # noqa: E402
+from services.common.schema import Eos, Frame, Keyframe, PcaBasis  # noqa: E402
+from services.features.config import FeaturesSettings  # noqa: E402
+from services.features.service import build_state, handle_eos, handle_frame  # noqa: E402
+from services.synth import SynthConfig, SynthWorld  # noqa: E402
+
+
+def test_held_back_keyframes_keep_their_own_timestamps(tmp_path):
+    write_tiny_model("dinov2-vitb14-reg", tmp_path)
+    cfg = FeaturesSettings(stream="s", backbone="dinov2-vitb14-reg", models_dir=tmp_path, device="cpu",
+                           scales=(1.0,), pca_components=4, pca_fit_keyframes=3)
+    state = build_state(cfg)
+    world = SynthWorld(SynthConfig(n_frames=12, person=False, moved_chair=False))
+    out = []
+    for i in range(12):  # the whole orbit in 12 frames: most of them are keyframes
+        f = world.render(i)
+        out += handle_frame(state, Frame("s", i, int(f.t_ns), 512, 384, image=f.rgb), cfg)
+    out += handle_eos(state, Eos("s", 11, 0, stage="ingest", count=12), cfg)
+    keyframes = [m for _, m in out if isinstance(m, Keyframe)]
+    assert len(keyframes) >= 3 and isinstance(out[-1][1], Eos) and out[-1][1].stage == "features"
+    assert [m for _, m in out if isinstance(m, PcaBasis)]
+    stamps = {seq: int(world.t_ns(seq)) for seq in range(12)}
+    assert [k.t_ns for k in keyframes] == [stamps[k.seq] for k in keyframes]
+    assert all((k.orig_width, k.orig_height) == (512, 384) for k in keyframes)
+    assert np.all(np.diff([k.seq for k in keyframes]) > 0)
