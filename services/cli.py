@@ -48,6 +48,8 @@ def _print_summary(report) -> None:
           f"{report.frames_dropped_or_lost} dropped or lost")
     print(f"  keyframes:         {report.keyframes}")
     print(f"  frames with pose:  {report.posed_frames}")
+    if report.ate_rmse_sim3 is not None:
+        print(f"  ATE (Sim3) vs GT:  {report.ate_rmse_sim3:.4f} RMSE over {report.ate_pairs} poses")
     for path in report.outputs:
         print(f"  wrote {path}")
 

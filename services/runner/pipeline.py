@@ -20,6 +20,7 @@ from ..common.errors import KmVipeError
 from ..common.schema import Credit, Eos, Frame, Keyframe, Poses
 from ..evaluation.trajectory_io import Trajectory, write_tum
 from . import children as kids
+from .groundtruth import evaluate
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +55,8 @@ class RunReport:
     duration_s: float = 0.0
     fps: float = 0.0
     end_reason: str = ""
+    ate_rmse_sim3: float | None = None  # against the source's ground truth, when it has one
+    ate_pairs: int = 0
     outputs: list[str] = field(default_factory=list)
 
 
@@ -228,8 +231,12 @@ def _write_outputs(cfg: RunSettings, report: RunReport, observer: _Observer) -> 
         stamps = np.array([observer.poses[s][0] for s in seqs], np.float64) / 1e9
         poses = np.stack([np.asarray(observer.poses[s][1], np.float64) for s in seqs])
         path = cfg.out / "trajectory.txt"
-        write_tum(path, Trajectory(stamps, poses))
+        estimate = Trajectory(stamps, poses)
+        write_tum(path, estimate)
         written.append(str(path))
+        ate = evaluate(cfg.source, estimate)
+        if ate is not None:
+            report.ate_rmse_sim3, report.ate_pairs = ate.rmse, ate.n_pairs
     written += [str(cfg.out / name) for name in ("map.ply", "cameras.txt") if (cfg.out / name).is_file()]
     summary = cfg.out / "summary.json"
     summary.write_text(json.dumps(asdict(report) | {"outputs": written + [str(summary)]}, indent=2, default=str))

@@ -1,0 +1,43 @@
+"""Ground truth for a run's source, when it has one: the synthetic world's exact poses, or a
+``groundtruth.txt`` (TUM format, camera-to-world) beside an image folder (TUM RGB-D, the shared KITTI set)."""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from ..common.errors import SourceError
+from ..evaluation.ate import AteResult, absolute_trajectory_error
+from ..evaluation.trajectory_io import Trajectory, TrajectoryFormatError, read_tum
+
+log = logging.getLogger(__name__)
+MAX_STAMP_DIFF_S = 0.02  # frame stamps of the estimate and the GT come from the same source
+
+
+def source_groundtruth(source: str) -> Trajectory | None:
+    if source.startswith("synth:"):
+        from ..ingest.sources import open_source
+
+        world = open_source(source).world
+        return Trajectory(world.timestamps_ns() / 1e9, world.poses)
+    gt = Path(source) / "groundtruth.txt"
+    if gt.is_file():
+        try:
+            return read_tum(gt)
+        except TrajectoryFormatError as exc:
+            log.warning("groundtruth.txt beside the source is not TUM; no ATE", extra={"error": str(exc)})
+    return None
+
+
+def evaluate(source: str, estimate: Trajectory) -> AteResult | None:
+    """Sim(3)-aligned ATE of ``estimate`` against the source's ground truth, or None without one."""
+    try:
+        reference = source_groundtruth(source)
+    except SourceError:
+        return None
+    if reference is None:
+        return None
+    try:
+        return absolute_trajectory_error(reference, estimate, align="sim3", max_diff=MAX_STAMP_DIFF_S)
+    except ValueError as exc:
+        log.warning("could not evaluate the trajectory", extra={"error": str(exc)})
+        return None
