@@ -47,7 +47,8 @@ def stream_messages(n_keyframes: int = 8) -> list:
         disp = (1.0 / f.depth[grid, grid])[None].astype(np.float32)
         msgs.append(Graph(STREAM, i, f.t_ns, kf_seqs=np.array(seqs), poses=nudged, intrinsics=f.intrinsics,
                           width=128, height=96, updated_seqs=np.array([i]), disparities=disp,
-                          static_weights=np.where(f.dynamic[grid, grid], 0, 1)[None].astype(np.float32)))
+                          static_weights=np.where(f.dynamic[grid, grid], 0, 1)[None].astype(np.float32),
+                          final=i == 2 * (n_keyframes - 1)))  # ba marks its last graph of a stream final
     msgs.append(Eos(STREAM, 2 * n_keyframes - 1, 0, stage="ba"))
     return msgs
 

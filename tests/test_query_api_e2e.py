@@ -119,7 +119,7 @@ def mapstore_messages(stream: str, n_keyframes: int):
         msgs.append(Graph(stream, j, f.t_ns, kf_seqs=np.arange(j + 1), poses=np.stack([g.world_from_cam for g in frames[:j + 1]]),
                           intrinsics=f.intrinsics, width=160, height=120, updated_seqs=np.array([j]),
                           disparities=(1.0 / f.depth[grid])[None].astype(np.float32), metric=True,
-                          static_weights=(~f.dynamic[grid])[None].astype(np.float32)))
+                          static_weights=(~f.dynamic[grid])[None].astype(np.float32), final=j == len(frames) - 1))
     return msgs
 
 

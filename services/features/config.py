@@ -41,6 +41,9 @@ class FeaturesSettings(BaseSettings):
     """CPU threads for torch and onnxruntime (2 on the reference machine)."""
     credit_window: int = 4
     """Frames ingest may send beyond the last one processed (lossless mode)."""
+    eos_wait_s: float = 10.0
+    """Zenoh orders messages per key only, so ingest's EOS can overtake its last frames: the stream is finished
+    once the announced number of frames has arrived, or this long after the EOS."""
 
     target_area: int = ResolutionParams.target_area
     fov_deg: float = ResolutionParams.fov_deg

@@ -38,6 +38,9 @@ class FeaturesState:
     last_seq: int = -1  # highest frame seq handled (credit is granted beyond it)
     last_keyframe_seq: int = -1
     last_frame: tuple[int, int, int] = (0, 0, 0)  # original (width, height, t_ns) of the latest frame
+    frames_seen: int = 0
+    pending_eos: Eos | None = None  # ingest's EOS, held until every frame it announced has arrived
+    eos_deadline: float = 0.0
     basis: CoreBasis | None = None
     published: int = 0
     bad_frames: int = 0
@@ -69,6 +72,14 @@ def decode_image(msg: Frame) -> np.ndarray:
 
 
 def handle_frame(state: FeaturesState, msg: Frame, cfg: FeaturesSettings) -> Outputs:
+    outputs = _frame(state, msg, cfg)
+    state.frames_seen += 1
+    if state.pending_eos is not None and state.frames_seen >= state.pending_eos.count:
+        outputs += _finish(state, state.pending_eos)
+    return outputs
+
+
+def _frame(state: FeaturesState, msg: Frame, cfg: FeaturesSettings) -> Outputs:
     state.last_seq = max(state.last_seq, msg.seq)
     state.last_frame = (msg.width, msg.height, msg.t_ns)
     try:
@@ -94,9 +105,27 @@ def handle_intrinsics(state: FeaturesState, msg: Intrinsics, cfg: FeaturesSettin
 
 
 def handle_eos(state: FeaturesState, msg: Eos, cfg: FeaturesSettings) -> Outputs:
-    """Ingest ended: the last frame becomes a keyframe, pending keyframes are coded, and EOS goes on."""
+    """Ingest ended: finish once every frame it sent has arrived (see ``eos_wait_s``)."""
     if msg.stage != "ingest":
         return []
+    if state.frames_seen >= msg.count:
+        return _finish(state, msg)
+    state.pending_eos, state.eos_deadline = msg, time.monotonic() + cfg.eos_wait_s
+    return []
+
+
+def overdue_eos(state: FeaturesState) -> Outputs:
+    """Finish a held EOS whose frames did not all come within ``eos_wait_s`` (some were lost upstream)."""
+    if state.pending_eos is None or time.monotonic() < state.eos_deadline:
+        return []
+    log.warning("end of stream with frames missing", extra={"stream": state.stream, "seen": state.frames_seen,
+                                                           "announced": state.pending_eos.count})
+    return _finish(state, state.pending_eos)
+
+
+def _finish(state: FeaturesState, msg: Eos) -> Outputs:
+    """The last frame becomes a keyframe, pending keyframes are coded, and the EOS goes on."""
+    state.pending_eos = None
     outputs: Outputs = []
     last = state.core.promote_last()
     if last is not None:
@@ -104,6 +133,7 @@ def handle_eos(state: FeaturesState, msg: Eos, cfg: FeaturesSettings) -> Outputs
         outputs += _coded(state, msg.stream, *state.codes.add(last))
     outputs += _coded(state, msg.stream, *state.codes.flush())
     eos = Eos(msg.stream, msg.seq, time.time_ns(), stage="features", count=state.published, reason=msg.reason)
+    state.frames_seen = 0  # a new stream may follow on the same key
     return outputs + [(keys.topic(msg.stream, keys.EOS), eos)]
 
 
@@ -150,6 +180,8 @@ def run(cfg: FeaturesSettings, bus: Bus, stop: threading.Event, state: FeaturesS
             next_credit = time.monotonic() + CREDIT_PERIOD_S
         delivery = inbox.get(POLL_S)
         if delivery is None:
+            for key, out in overdue_eos(state):
+                bus.publish(key, out)
             continue
         try:
             outputs = HANDLERS[type(delivery.msg)](state, delivery.msg, cfg)

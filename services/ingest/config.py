@@ -30,7 +30,8 @@ class IngestSettings(BaseSettings):
     credit_ttl_s: float = Field(5.0, gt=0)
     """A consumer that has granted no credit for this long no longer holds the stream back."""
     wait_for_consumer_s: float = Field(60.0, ge=0)
-    """Lossless mode: how long to wait for the first credit before giving up with a clear error."""
+    """How long to wait for the first consumer's credit before reading the source (so the first frames of a
+    file are not dropped while the pipeline connects); lossless mode then gives up with a clear error."""
 
     @field_validator("intrinsics")
     @classmethod

@@ -64,6 +64,9 @@ def run(cfg: IngestSettings, bus: Bus, stop: threading.Event, source: Source | N
     gate = CreditGate(cfg.credit_ttl_s)
     bus.subscribe(keys.topic(cfg.stream, keys.CREDIT), gate.on_credit, expect=[Credit])
     bus.ready()
+    if not gate.wait_for(0, cfg.wait_for_consumer_s):
+        # lossless gives up with a clear error below; realtime plays on and drops what nobody takes
+        log.warning("no consumer has granted credit yet", extra={"stream": cfg.stream, "waited_s": cfg.wait_for_consumer_s})
     frame_key = keys.topic(cfg.stream, keys.FRAME)
     counters, seq, reason = IngestCounters(), -1, "end"
     lossless = cfg.pacing == "lossless"

@@ -114,6 +114,8 @@ class MapstoreSettings(BaseSettings):
     export_dir: str = ""
     """When set, write map.ply, depth maps and COLMAP cameras here at end of stream."""
     upstream: str = "ba"
+    eos_wait_s: float = 10.0
+    """How long ba's EOS waits for ba's final graph (they travel on different keys) before the map is exported."""
     """The stage whose end of stream ends the map: it is exported and the EOS forwarded as ``mapstore``."""
 
     def map_params(self) -> MapParams:

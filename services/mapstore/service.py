@@ -50,13 +50,30 @@ def handle_graph(state: MapState, msg: Graph, cfg: MapstoreSettings) -> None:
             None if msg.static_weights is None else np.array(msg.static_weights[i]),
             None if msg.confidence is None else np.array(msg.confidence[i]))
     refreshed = state.update_graph(poses, depths, msg.metric)
+    if msg.final:
+        state.final_keyframes = {int(k) for k in msg.kf_seqs}
     log.debug("graph applied", extra={"stream": msg.stream, "seq": msg.seq, "keyframes_refreshed": refreshed})
 
 
 def handle_eos(state: MapState, msg: Eos, cfg: MapstoreSettings) -> list[tuple[str, Message]]:
-    """Upstream's end of stream: export the map, then forward the EOS (the runner waits for it)."""
+    """Upstream's end of stream: once ba's final graph is in (Zenoh orders messages per key only, so the EOS
+    can overtake it), export the map and forward the EOS (the runner waits for it)."""
     if msg.stage != cfg.upstream:
         return []
+    if not stream_complete(state):
+        state.pending_eos, state.eos_deadline = msg, time.monotonic() + cfg.eos_wait_s
+        return []
+    return finish_stream(state, msg, cfg)
+
+
+def stream_complete(state: MapState) -> bool:
+    """ba's final graph is in, and so is every keyframe it names (keyframes come from features, on another key)."""
+    with state.lock:
+        return state.final_keyframes is not None and state.final_keyframes <= set(state.map.contents)
+
+
+def finish_stream(state: MapState, msg: Eos, cfg: MapstoreSettings) -> list[tuple[str, Message]]:
+    state.pending_eos, state.final_keyframes = None, None
     log.info("end of stream", extra={"stream": msg.stream, "seq": msg.seq, "stage": msg.stage})
     if cfg.export_dir:
         export_state(state, Path(cfg.export_dir))
@@ -115,5 +132,9 @@ def run(cfg: MapstoreSettings, bus: Bus, stop: threading.Event, state: MapState 
         delivery = inbox.get(POLL_S)
         if delivery is not None:
             for key, out in handle(state, delivery.msg, cfg):
+                bus.publish(key, out)
+        held = state.pending_eos
+        if held is not None and (stream_complete(state) or time.monotonic() > state.eos_deadline):
+            for key, out in finish_stream(state, held, cfg):
                 bus.publish(key, out)
     return state

@@ -44,6 +44,10 @@ class MapState:
             self.map.set_pose(kf_id, pose)
         self.map.refresh()
         self._index: tuple[int, int, ScoringIndex] | None = None  # (map revision, basis version, index)
+        # end of stream: ba's EOS is held until its final graph has been applied (or eos_wait_s passed)
+        self.final_keyframes: set[int] | None = None
+        self.pending_eos = None
+        self.eos_deadline = 0.0
         log.info("map loaded", extra={"stream": cfg.stream, "keyframes": len(stored.contents),
                                       "voxels": len(self.map.fused().keys)})
 

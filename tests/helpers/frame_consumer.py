@@ -41,8 +41,9 @@ def main() -> None:
         bus.ready()
         open(args.out + ".ready", "w").close()  # subscribed: the test may start the producer
         seqs, eos = [], None
-        while eos is None:
-            delivery = inbox.get(timeout=60)
+        # Zenoh orders per key only: the EOS may overtake the last frames, so read on until its count arrived
+        while eos is None or len(seqs) < eos.count:
+            delivery = inbox.get(timeout=60 if eos is None else 10)
             if delivery is None:
                 break
             if isinstance(delivery.msg, Eos):
