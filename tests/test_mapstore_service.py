@@ -177,3 +177,17 @@ def test_graph_that_overtakes_its_keyframe_is_applied_when_the_keyframe_arrives(
     np.testing.assert_array_equal(np.sort(a.keys), np.sort(b.keys))
     in_order.close()
     swapped.close()
+
+
+def test_a_diverged_pose_leaves_its_camera_out_of_the_export_not_the_export(tmp_path):
+    cfg = settings(tmp_path, export_dir=str(tmp_path / "export"))
+    state = MapState(cfg)
+    msgs = stream_messages(3)
+    for msg in msgs[:-1]:
+        handle(state, msg, cfg)
+    state.map.poses[2] = np.zeros((4, 4))  # what a diverged BA could send: singular, not a rotation
+    out = handle(state, msgs[-1], cfg)  # the EOS: export, then forward
+    assert [m.stage for _, m in out] == ["mapstore"]
+    cams = read_colmap(tmp_path / "export" / "colmap")
+    assert "000000.jpg" in cams and "000002.jpg" not in cams
+    state.close()

@@ -89,24 +89,37 @@ def export_state(state: MapState, out: Path):
         depths = {k: d for k, d in state.map.depths.items() if k in state.map.poses and k in state.map.contents}
         cams = {}
         for k in depths:
+            pose = state.map.poses[k]
+            if not _is_rigid(pose):  # a diverged BA can publish such a pose; leave the camera out, not the export
+                log.warning("camera with an invalid pose left out of the export", extra={"seq": k})
+                continue
             h, w = state.map.contents[k].image_hw
-            cams[k] = ColmapImage(f"{k:06d}.jpg", state.map.poses[k], np.asarray(depths[k].intrinsics), (w, h))
+            cams[k] = ColmapImage(f"{k:06d}.jpg", pose, np.asarray(depths[k].intrinsics), (w, h))
         jpegs = {k: state.store.image(k) for k in cams}
         return export_all(out, fused.xyz, fused.colours, depths, cams, state.metric,
                           {k: v for k, v in jpegs.items() if v is not None})
+
+
+def _is_rigid(pose: np.ndarray, tol: float = 1e-3) -> bool:
+    rot = pose[:3, :3]
+    return bool(np.all(np.isfinite(pose)) and np.allclose(rot.T @ rot, np.eye(3), atol=tol))
 
 
 HANDLERS = {Keyframe: handle_keyframe, PcaMessage: handle_pca, Graph: handle_graph, Eos: handle_eos}
 
 
 def handle(state: MapState, msg: Message, cfg: MapstoreSettings) -> list[tuple[str, Message]]:
-    """The error boundary of one message: bad input is logged with its seq and the loop goes on.
-    Returns the messages to publish."""
+    """Handle one message; returns the messages to publish."""
+    return _guarded(HANDLERS[type(msg)], state, msg, cfg)
+
+
+def _guarded(handler, state: MapState, msg: Message, cfg: MapstoreSettings) -> list[tuple[str, Message]]:
+    """The error boundary of one message: bad input is logged with its seq and the loop goes on."""
     try:
-        return HANDLERS[type(msg)](state, msg, cfg) or []
-    except (ValueError, KeyError, LookupError) as exc:
+        return handler(state, msg, cfg) or []
+    except (ValueError, KeyError, LookupError, ArithmeticError) as exc:
         log.warning("message rejected", extra={"stream": msg.stream, "seq": msg.seq, "kind": msg.KIND,
-                                               "error": str(exc)})
+                                               "error": f"{type(exc).__name__}: {exc}"})
         return []
 
 
@@ -135,6 +148,6 @@ def run(cfg: MapstoreSettings, bus: Bus, stop: threading.Event, state: MapState 
                 bus.publish(key, out)
         held = state.pending_eos
         if held is not None and (stream_complete(state) or time.monotonic() > state.eos_deadline):
-            for key, out in finish_stream(state, held, cfg):
+            for key, out in _guarded(finish_stream, state, held, cfg):
                 bus.publish(key, out)
     return state

@@ -195,8 +195,9 @@ def _follow(observer: _Observer, started: list[kids.Child], ingest: kids.Child, 
                 bar.update(observer.frames - bar.n)
                 idle = time.monotonic() - observer.last_activity
             dead = [c for c in started if not c.running() and not (c is ingest and c.process.returncode == 0)]
-            if dead:
-                raise KmVipeError(f"service '{dead[0].name}' died (exit {dead[0].process.returncode}); its log ends:\n{dead[0].tail()}")
+            if dead:  # say why, and still write what was produced so far
+                log.error("service died", extra={"service": dead[0].name, "log_tail": dead[0].tail()})
+                return f"error: service '{dead[0].name}' died (exit {dead[0].process.returncode}); see {dead[0].log_path}"
             if idle > cfg.stall_timeout_s:
                 return f"stalled: nothing on the bus for {idle:.0f} s"
         return observer.eos[observer.last_stage].reason
