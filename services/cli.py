@@ -44,6 +44,8 @@ def _print_summary(report) -> None:
     print(f"  services ran:      {', '.join(report.services_ran)}")
     if report.services_not_built:
         print(f"  not built yet:     {', '.join(report.services_not_built)}")
+    if report.services_skipped:
+        print(f"  skipped (--skip):  {', '.join(report.services_skipped)}")
     print(f"  frames:            {report.frames} in {report.duration_s:.1f} s ({report.fps:.1f} fps), "
           f"{report.frames_dropped_or_lost} dropped or lost")
     print(f"  keyframes:         {report.keyframes}")

@@ -48,6 +48,7 @@ class RunReport:
     stream: str
     services_ran: list[str]
     services_not_built: list[str]
+    services_skipped: list[str] = field(default_factory=list)
     frames: int = 0
     keyframes: int = 0
     posed_frames: int = 0
@@ -99,7 +100,8 @@ def run_pipeline(cfg: RunSettings) -> RunReport:
     built = [name for name in kids.PIPELINE if kids.is_built(name) and name not in cfg.skip]
     if "ingest" not in built:
         raise KmVipeError("the ingest service is missing from this installation (or skipped)")
-    report = RunReport(cfg.source, cfg.stream, built, [n for n in kids.PIPELINE if n not in built])
+    report = RunReport(cfg.source, cfg.stream, built, [n for n in kids.PIPELINE if not kids.is_built(n)],
+                       services_skipped=list(cfg.skip))
     cfg.out.mkdir(parents=True, exist_ok=True)
     endpoint = kids.free_tcp_endpoint()
     observer = _Observer(last_stage=kids.last_connected_stage(built))
