@@ -15,7 +15,8 @@ import torch
 from ..common import keys
 from ..common.bus import Bus
 from ..common.models.backbones import normalise_rgb
-from ..common.models.loaders import load_backbone, load_depth_model, resolve_device
+from ..common.device import resolve_device
+from ..common.models.loaders import load_backbone, load_depth_model
 from ..common.models.store import ModelStore
 from ..common.schema import Credit, Eos, Frame, FrameLite, Intrinsics, Keyframe, Message, PcaBasis
 from .config import FeaturesSettings

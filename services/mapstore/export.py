@@ -13,6 +13,8 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
+from services.common.rotations import rotation_to_quaternion
+
 from services.mapstore.core.keyframe import KeyframeDepth
 
 log = logging.getLogger(__name__)
@@ -125,22 +127,8 @@ def write_depth_maps(folder: Path, depths: dict[int, KeyframeDepth], metric: boo
 
 # ----- COLMAP -----------------------------------------------------------------------------------
 def quaternion_wxyz(rotation: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation matrix → (4,) unit quaternion (w, x, y, z), w ≥ 0 (Shepperd's method)."""
-    r = np.asarray(rotation, np.float64)
-    tr = np.trace(r)
-    cands = np.array([1 + tr, 1 + 2 * r[0, 0] - tr, 1 + 2 * r[1, 1] - tr, 1 + 2 * r[2, 2] - tr])
-    i = int(np.argmax(cands))
-    s = np.sqrt(cands[i]) * 2  # 4 · |q_i|
-    if i == 0:
-        q = [s / 4, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s]
-    elif i == 1:
-        q = [(r[2, 1] - r[1, 2]) / s, s / 4, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s]
-    elif i == 2:
-        q = [(r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, s / 4, (r[1, 2] + r[2, 1]) / s]
-    else:
-        q = [(r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, s / 4]
-    q = np.array(q)
-    return q / np.linalg.norm(q) * (1 if q[0] >= 0 else -1)
+    """(3, 3) rotation matrix → (4,) unit quaternion (w, x, y, z), w ≥ 0: COLMAP's order."""
+    return np.roll(rotation_to_quaternion(np.asarray(rotation, np.float64)[None])[0], 1)
 
 
 def rotation_from_wxyz(q: np.ndarray) -> np.ndarray:

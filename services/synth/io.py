@@ -19,6 +19,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from services.common.rotations import rotation_to_quaternion
+
 from services.synth.render import SynthWorld
 
 log = logging.getLogger(__name__)
@@ -34,25 +36,11 @@ def tum_timestamp(t_ns: int) -> str:
 
 
 def quaternion_xyzw(rotation: np.ndarray) -> np.ndarray:
-    """Unit quaternion (4,) float64 (qx, qy, qz, qw), qw >= 0, of a rotation matrix (3, 3) (Shepperd)."""
+    """Unit quaternion (4,) float64 (qx, qy, qz, qw), qw >= 0, of a rotation matrix (3, 3)."""
     r = np.asarray(rotation, np.float64)
     if r.shape != (3, 3):
         raise ValueError(f"rotation must be (3, 3), got shape {r.shape}")
-    trace = np.trace(r)
-    if trace > 0:
-        s = 2.0 * np.sqrt(1.0 + trace)
-        q = np.array([(r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, s / 4])
-    else:
-        k = int(np.argmax(np.diag(r)))  # largest diagonal element gives the best-conditioned component
-        i, j = (k + 1) % 3, (k + 2) % 3
-        s = 2.0 * np.sqrt(1.0 + r[k, k] - r[i, i] - r[j, j])
-        q = np.empty(4)
-        q[k] = s / 4
-        q[i] = (r[i, k] + r[k, i]) / s
-        q[j] = (r[j, k] + r[k, j]) / s
-        q[3] = (r[j, i] - r[i, j]) / s
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0 else q
+    return rotation_to_quaternion(r[None])[0]
 
 
 def depth_to_png16(depth: np.ndarray) -> np.ndarray:

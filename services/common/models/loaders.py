@@ -7,6 +7,8 @@ from typing import Literal
 
 import torch
 
+from ..device import resolve_device
+
 from ..errors import ModelError
 from . import imgfocus
 from .backbones import OnnxDinoBackbone, TorchDinoBackbone
@@ -18,13 +20,6 @@ from .text import ClipTextEncoder, Talk2DinoHead, load_talk2dino_head
 log = logging.getLogger(__name__)
 
 Runtime = Literal["auto", "onnx", "torch"]
-
-
-def resolve_device(device: str = "auto") -> torch.device:
-    """``auto`` → CUDA when present, else CPU; anything else is passed to ``torch.device``."""
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(device)
 
 
 def compute_dtype(device: torch.device, half: bool = True) -> torch.dtype:

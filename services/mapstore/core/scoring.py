@@ -14,6 +14,8 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from services.common.device import resolve_device
+
 _EPS = 1e-12
 
 
@@ -52,12 +54,6 @@ class TopK(NamedTuple):
     indices: np.ndarray  # (Q, k) int64 point indices, best first
     scores: np.ndarray  # (Q, k) float32 cosine scores
 
-
-def resolve_device(name: str) -> torch.device:
-    """"auto" → CUDA when available, else CPU; anything else is passed to torch.device."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
 
 
 def decode_codes(codes: np.ndarray, basis: PcaBasis) -> np.ndarray:

@@ -9,6 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ...common.rotations import rotation_to_quaternion
+
 
 @dataclass(frozen=True)
 class Trajectory:
@@ -51,29 +53,7 @@ class PoseBook:
 
 def quaternion_xyzw(rotation: np.ndarray) -> np.ndarray:
     """(N, 3, 3) rotation matrices → (N, 4) unit quaternions (x, y, z, w), w ≥ 0 (Hamilton)."""
-    r = np.asarray(rotation, np.float64)
-    if r.ndim != 3 or r.shape[1:] != (3, 3):
-        raise ValueError(f"rotation must be (N, 3, 3), got {r.shape}")
-    # Shepperd: pick the largest of (w, x, y, z) magnitudes for numerical stability
-    tr = np.trace(r, axis1=1, axis2=2)
-    cand = np.stack([tr, r[:, 0, 0], r[:, 1, 1], r[:, 2, 2]], axis=1)
-    k = np.argmax(cand, axis=1)
-    q = np.zeros((len(r), 4))
-    for i, (m, j) in enumerate(zip(r, k)):
-        if j == 0:
-            s = 2.0 * np.sqrt(max(1.0 + tr[i], 1e-300))
-            q[i] = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
-        else:
-            a, b, c = (j - 1), j % 3, (j + 1) % 3
-            s = 2.0 * np.sqrt(max(1.0 + m[a, a] - m[b, b] - m[c, c], 1e-300))
-            v = np.zeros(4)
-            v[a] = 0.25 * s
-            v[b] = (m[b, a] + m[a, b]) / s
-            v[c] = (m[c, a] + m[a, c]) / s
-            v[3] = (m[c, b] - m[b, c]) / s
-            q[i] = v
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    return np.where(q[:, 3:4] < 0, -q, q)
+    return rotation_to_quaternion(rotation)
 
 
 def tum_text(traj: Trajectory) -> str:
