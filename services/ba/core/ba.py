@@ -56,7 +56,7 @@ class BAResult(NamedTuple):
     state: BAState
     costs: list[float]  # energy before the first and after every accepted iteration
     edge_weight: torch.Tensor  # (E, h, w) robust (ARK) weight in [0, 1] at the final state, 0 where unused
-    static_weight: torch.Tensor  # (N, h, w) mean edge weight of each keyframe's pixels (1 with no out-edge)
+    static_weight: torch.Tensor  # (N, h, w) in [0, 1]: probability each pixel is static (see _static_weight)
     alpha: torch.Tensor  # (E, h, w) robust shape used in the last iteration
 
 
@@ -225,11 +225,44 @@ def run_ba(state: BAState, problem: BAProblem, params: BAParams) -> BAResult:
             lm *= params.lm_up
             if lm > params.lm_max:
                 break
+    edge_w = _edge_weight(res, frozen, params)
+    static = _static_weight(res, problem, params, n).view(n, h, w)
+    return BAResult(state, costs, edge_w.view(-1, h, w), static, frozen.alpha.view(-1, h, w))
+
+
+def _edge_weight(res: _Residuals, frozen: _Frozen, params: BAParams) -> torch.Tensor:
+    """(E, P) robust IRLS weight c^2 psi(r)/r in [0, 1] of the kernel in use; 0 where the edge is unused."""
     c = params.robust.scale
-    used = (res.flow_w > 0).to(res.flow.dtype)
-    edge_w = c**2 * robust.weight(res.flow.norm(dim=-1), frozen.alpha, c) * used
-    # mean over the edges that see each pixel; 1 (no evidence of motion) where none does
-    counts = torch.zeros(n, h * w, dtype=used.dtype, device=used.device).index_add_(0, problem.ii, used)
-    sums = torch.zeros_like(counts).index_add_(0, problem.ii, edge_w)
-    static = torch.where(counts > 0, sums / counts.clamp_min(1), torch.ones_like(sums))
-    return BAResult(state, costs, edge_w.view(-1, h, w), static.view(n, h, w), frozen.alpha.view(-1, h, w))
+    return c**2 * robust.weight(res.flow.norm(dim=-1), frozen.alpha, c) * (res.flow_w > 0).to(res.flow.dtype)
+
+
+def _static_weight(res: _Residuals, problem: BAProblem, params: BAParams, n: int) -> torch.Tensor:
+    """(N, P) probability that each keyframe pixel is static, from the evidence of all its out-edges.
+
+    With codes (ARK): the ARK sigmoid of the confidence-weighted mean cosine similarity over the edges,
+    ``sigmoid((mean cs - kappa) / tau)`` (summing the per-edge log-odds ``(cs - kappa)/tau``: one view where the
+    pixel is occluded or lands on a label border does not outvote the others), times the mean flow weight the
+    dynamic kernel gives the pixel, ``c^2 psi_{alpha_dyn}(r)/r`` (a rigidly moving object whose codes still
+    agree, e.g. the inside of a large moved object, shows up only in its flow). Without codes: the mean
+    robust weight of the kernel in use. 1 (no evidence of motion) where no edge sees the pixel.
+    """
+    rob = params.robust
+    votes = res.flow_w
+    with_codes = rob.use_ark and res.embed is not None
+    if with_codes:
+        votes = votes * res.embed.valid
+        flow_w = rob.scale**2 * robust.weight(res.flow.norm(dim=-1), rob.alpha_dynamic, rob.scale)
+    else:
+        flow_w = rob.scale**2 * robust.weight(res.flow.norm(dim=-1), rob.fixed_alpha, rob.scale)
+    p = votes.shape[1]
+    total = torch.zeros(n, p, dtype=votes.dtype, device=votes.device).index_add_(0, problem.ii, votes)
+    seen = total > 0
+    denom = total.clamp_min(torch.finfo(votes.dtype).tiny)
+
+    def mean(values: torch.Tensor) -> torch.Tensor:
+        return torch.zeros_like(total).index_add_(0, problem.ii, votes * values) / denom
+
+    static = mean(flow_w)
+    if with_codes:
+        static = static * torch.sigmoid((mean(res.embed.cosine) - rob.kappa) / rob.tau)
+    return torch.where(seen, static, torch.ones_like(static))
