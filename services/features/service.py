@@ -23,6 +23,7 @@ from .config import FeaturesSettings
 from .core.geometry import Intrinsics as K4
 from .core.pca import PcaBasis as CoreBasis
 from .core.pipeline import CodeQueue, FeaturesCore, KeyframeOut, LiteOut
+from .oracle import ORACLE_BACKBONE, SynthOracleBackbone
 
 log = logging.getLogger(__name__)
 POLL_S = 0.05
@@ -54,7 +55,10 @@ def build_state(cfg: FeaturesSettings) -> FeaturesState:
     """Load the models named in the settings (one clear ModelError if one is missing)."""
     torch.set_num_threads(cfg.threads)
     store = ModelStore(cfg.models_dir)
-    backbone = load_backbone(cfg.backbone, store, cfg.device, cfg.runtime, cfg.threads, cfg.half)
+    if cfg.backbone == ORACLE_BACKBONE:  # test double: exact synthetic-world labels instead of a model
+        backbone = SynthOracleBackbone(cfg.oracle_params())
+    else:
+        backbone = load_backbone(cfg.backbone, store, cfg.device, cfg.runtime, cfg.threads, cfg.half)
     depth = load_depth_model(cfg.depth_model, store, cfg.device, cfg.half) if cfg.depth_model else None
     device = resolve_device(cfg.device)
     core = FeaturesCore(cfg.params(getattr(backbone, "patch_size", 14), device.type == "cuda"), backbone,
@@ -90,6 +94,7 @@ def _frame(state: FeaturesState, msg: Frame, cfg: FeaturesSettings) -> Outputs:
         log.warning("corrupt frame skipped", extra={"stream": msg.stream, "seq": msg.seq, "error": str(exc)})
         return []
     hint = K4(*map(float, msg.intrinsics)) if msg.intrinsics is not None else None
+    _announce_frame(state, msg.seq)
     out = state.core.process(msg.seq, image, hint, None if msg.depth is None else np.asarray(msg.depth))
     if isinstance(out, LiteOut):
         lite = FrameLite(msg.stream, msg.seq, msg.t_ns, image=out.grey, intrinsics=np.array(out.intrinsics, np.float64),
@@ -98,6 +103,13 @@ def _frame(state: FeaturesState, msg: Frame, cfg: FeaturesSettings) -> Outputs:
     state.last_keyframe_seq = out.seq
     state.pending[out.seq] = (msg.width, msg.height, msg.t_ns)
     return _coded(state, msg.stream, *state.codes.add(out))
+
+
+def _announce_frame(state: FeaturesState, seq: int) -> None:
+    """Tell a frame-aware backbone (the synthetic oracle) which frame it is about to see."""
+    set_frame = getattr(state.core.backbone, "set_frame", None)
+    if set_frame is not None:
+        set_frame(seq)
 
 
 def handle_intrinsics(state: FeaturesState, msg: Intrinsics, cfg: FeaturesSettings) -> Outputs:
@@ -128,6 +140,8 @@ def _finish(state: FeaturesState, msg: Eos) -> Outputs:
     """The last frame becomes a keyframe, pending keyframes are coded, and the EOS goes on."""
     state.pending_eos = None
     outputs: Outputs = []
+    if state.core.last_lite is not None:
+        _announce_frame(state, state.core.last_lite[1])
     last = state.core.promote_last()
     if last is not None:
         state.pending[last.seq] = state.last_frame

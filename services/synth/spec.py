@@ -1,0 +1,42 @@
+"""``synth:frames=200,seed=0,...`` source specs → :class:`SynthConfig`, so every process that needs the world a
+stream was rendered from (the features oracle, map-quality evaluation) rebuilds exactly the same one.
+
+Options (all integers): frames, seed, width, height, person (0/1), chair (0/1: the moved chair), static (0/1:
+static camera instead of the orbit), depth (0/1: ingest also sends exact depth; no effect on the world).
+"""
+
+from __future__ import annotations
+
+from services.common.errors import ConfigError
+from services.synth.config import SynthConfig
+
+# option in the spec → (SynthConfig field, converter); mirrors services/ingest/synth_source.py
+_OPTIONS = {
+    "frames": ("n_frames", int),
+    "seed": ("seed", int),
+    "width": ("width", int),
+    "height": ("height", int),
+    "person": ("person", bool),
+    "chair": ("moved_chair", bool),
+    "static": ("camera", lambda v: "static" if v else "orbit"),
+}
+_IGNORED = ("depth",)  # source options that do not change the world
+
+
+def config_from_spec(spec: str) -> SynthConfig:
+    """The :class:`SynthConfig` a ``synth:`` source spec renders; ConfigError on anything else."""
+    if not spec.startswith("synth:"):
+        raise ConfigError(f"not a synthetic source spec: {spec!r} (expected synth:frames=...,seed=...)")
+    fields = {}
+    for item in filter(None, spec.split(":", 1)[1].lstrip("/").split(",")):
+        key, _, value = item.partition("=")
+        key = key.strip()
+        if not value.lstrip("-").isdigit():
+            raise ConfigError(f"bad synthetic source option {item!r}: use e.g. synth:frames=200,seed=0")
+        if key in _IGNORED:
+            continue
+        if key not in _OPTIONS:
+            raise ConfigError(f"unknown synthetic source option {key!r}; known: {', '.join([*_OPTIONS, *_IGNORED])}")
+        name, convert = _OPTIONS[key]
+        fields[name] = convert(int(value))
+    return SynthConfig(**fields)
