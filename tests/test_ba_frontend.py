@@ -117,3 +117,29 @@ def test_bad_keyframes_are_refused_and_leave_the_graph_as_it_was():
     assert fe.graph.seqs == [0]
     with pytest.raises(ValueError, match="already a keyframe"):
         fe.add_frame(FrameInput(0, 0, np.zeros((32, 48), np.uint8)))
+
+
+def test_a_fixed_camera_watching_a_moving_object_stays_put():
+    # vtest-like: the keyframe selector makes only the first and last frames keyframes; there is never parallax
+    rng = np.random.default_rng(3)
+    import cv2
+
+    texture = cv2.GaussianBlur(rng.integers(0, 255, (96, 128), dtype=np.uint8), (0, 0), 1.5)
+    blob = cv2.GaussianBlur(rng.integers(0, 255, (24, 16), dtype=np.uint8), (0, 0), 1.0)
+    frames = []
+    for n in range(12):
+        image = texture.copy()
+        image[40:64, 10 + 8 * n: 26 + 8 * n] = blob  # a "person" crossing the view
+        frames.append(image)
+    fe = Frontend()
+    k = np.array([100.0, 100.0, 63.5, 47.5])
+    fe.add_keyframe(KeyframeInput(0, 0, frames[0], k))
+    for n in range(1, 11):
+        fe.add_frame(FrameInput(n, n * 100_000_000, frames[n]))
+    fe.add_keyframe(KeyframeInput(11, 1_100_000_000, frames[11], k))
+    poses = fe.finish().poses
+    assert len(poses.frame_seqs) == 12
+    rel = np.linalg.inv(poses.poses[0]) @ poses.poses
+    angles = np.degrees(np.arccos(np.clip((np.trace(rel[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    assert angles.max() < 0.2  # the crossing object pulls a frame by <0.1 deg
+    assert np.linalg.norm(rel[:, :3, 3], axis=1).max() < 0.01  # map units: the constant disparity is 1

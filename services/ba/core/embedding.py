@@ -45,6 +45,8 @@ def bilinear_sample(code_maps: torch.Tensor, index: torch.Tensor, coords: torch.
     n, h, w, k = code_maps.shape
     if coords.shape[0] != index.shape[0] or coords.shape[-1] != 2:
         raise ValueError(f"coords (E,P,2) with E = len(index) expected, got {coords.shape}, {index.shape}")
+    # a point behind a camera projects to NaN; NaN survives clamp() and becomes a wild index after long()
+    coords = torch.nan_to_num(coords, nan=-1.0, posinf=-1.0, neginf=-1.0)
     x, y = coords[..., 0], coords[..., 1]
     inside = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
     x0 = x.clamp(0, w - 1).floor().clamp(max=max(w - 2, 0))

@@ -40,7 +40,7 @@ def dis_flow(image_a: np.ndarray, image_b: np.ndarray, params: FlowParams,
         raise ValueError(f"images differ in size: {a.shape} vs {b.shape}")
     if init_flow is None:
         return dis.calc(a, b, None)
-    dis.setUseInitialFlow(True)
+    # DIS refines a flow passed to calc() when it has the image's size and is float32 2-channel
     return dis.calc(a, b, np.ascontiguousarray(init_flow, dtype=np.float32))
 
 
@@ -50,19 +50,20 @@ def _block_mean(x: np.ndarray, grid: int) -> np.ndarray:
 
 
 def flow_targets(image_i: np.ndarray, image_j: np.ndarray, params: FlowParams,
-                 init_flow: np.ndarray | None = None) -> FlowTargets:
+                 init_flow: np.ndarray | None = None, init_backward: np.ndarray | None = None) -> FlowTargets:
     """Grid flow targets of edge ``(i, j)`` from working-resolution images (H, W multiples of ``grid``).
 
     The target of cell (r, c) is the mean landing point of its 8x8 block, i.e. the flow at the cell centre
     ``(8c + 3.5, 8r + 3.5)`` for locally affine flow, converted to grid coordinates with
     ``x_grid = (x + 0.5)/8 - 0.5`` (docs/CONVENTIONS.md). Confidence is the block mean of
-    ``exp(-|F(p) + B(p + F(p))|^2 / (2 sigma^2))`` (0 where ``p + F(p)`` leaves the image).
+    ``exp(-|F(p) + B(p + F(p))|^2 / (2 sigma^2))`` (0 where ``p + F(p)`` leaves the image). ``init_flow`` and
+    ``init_backward`` (``(H, W, 2)`` float32) start DIS from a predicted forward / backward flow.
     """
     height, width = to_grey(image_i).shape
     if height % params.grid or width % params.grid:
         raise ValueError(f"image size {height}x{width} is not a multiple of {params.grid}")
     fwd = dis_flow(image_i, image_j, params, init_flow)
-    bwd = dis_flow(image_j, image_i, params)
+    bwd = dis_flow(image_j, image_i, params, init_backward)
     xs, ys = np.meshgrid(np.arange(width, dtype=np.float32), np.arange(height, dtype=np.float32))
     land_x, land_y = xs + fwd[..., 0], ys + fwd[..., 1]
     bwd_at = cv2.remap(bwd, land_x, land_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)

@@ -121,9 +121,10 @@ class Frontend:
         g = self.graph
         if g is None or len(g) == 0:
             return Update()
+        static = False
         if not self.initialised:
-            self._force_initialise()
-        if len(g) > 1:
+            static = self._force_initialise()
+        if len(g) > 1 and not static:
             everything = list(range(len(g)))
             pairs = sorted(set(g.pairs(everything, self.params.graph.global_radius)))
             g.run(everything, pairs, self._ba_params(everything, self.params.global_ba))
@@ -146,7 +147,7 @@ class Frontend:
             raise ValueError(f"keyframe {kf.seq}: intrinsics (4,) expected")
         if self.graph is None:
             self.graph = KeyframeGraph(grid_intrinsics(kf.intrinsics), hw, self.params.flow, self.device,
-                                       self.params.focal_range)
+                                       self.params.focal_range, self.params.max_step_growth)
             self._size = (width, height)
             self._focal = float(self.graph.intrinsics[0])
         elif (width, height) != self._size:
@@ -175,8 +176,35 @@ class Frontend:
         t = g.targets(k - 1, k)
         res = motion.align(g.poses[k], g.poses[k - 1][None], g.disparity[k - 1][None], t.target[None].to(self.device),
                            t.confidence[None].to(self.device), g.intrinsics, self.params.motion)
-        if res.ok:
-            g.poses[k] = res.pose
+        pose = res.pose if res.ok else g.poses[k]
+        g.poses[k] = pose if self._plausible_step(pose, k) else self._bounded_prediction(k)
+
+    def _recent_step(self, k: int) -> float:
+        """Median distance between consecutive keyframes among the six before ``k``."""
+        g = self.graph
+        centres = torch.stack([g.poses[i][:3, 3] for i in range(max(0, k - 6), k)])
+        return float((centres[1:] - centres[:-1]).norm(dim=-1).median())
+
+    def _plausible_step(self, pose: torch.Tensor, k: int) -> bool:
+        """Motion-only alignment of a keyframe whose flow barely constrains it (near objects lost by DIS, a
+        forward motion along the depth ambiguity) can slide far along its free direction; kept, that step would
+        be repeated by every later constant-velocity prediction. Its step must stay within ``max_step_growth``
+        times the median of the previous steps."""
+        if k < 3:
+            return True
+        step = float((pose[:3, 3] - self.graph.poses[k - 1][:3, 3]).norm())
+        return step <= self.params.max_step_growth * self._recent_step(k)
+
+    def _bounded_prediction(self, k: int) -> torch.Tensor:
+        """The previous keyframe's motion repeated, its translation shortened to the recent median step."""
+        g = self.graph
+        rel = se3.inverse(g.poses[k - 2]) @ g.poses[k - 1]
+        length = float(rel[:3, 3].norm())
+        if length > 0:
+            rel = rel.clone()
+            rel[:3, 3] *= min(1.0, self._recent_step(k) / length)
+        logger.info("keyframe pose implausible; bounded constant-velocity prediction kept", extra={"seq": g.seqs[k]})
+        return g.poses[k - 1] @ rel
 
     def _window(self) -> list[int]:
         n = len(self.graph)
@@ -225,12 +253,20 @@ class Frontend:
         if not init.start_map(self.graph, p.init, self._ba_params(list(range(len(self.graph)))), p.motion, force):
             return Update()
         self.initialised = True
+        self.graph.predict_flow = p.predict_flow
         self.metric = p.ba.alpha_disp > 0 and any(pr is not None for pr in self.graph.priors)
         return self._update(list(range(len(self.graph))))
 
-    def _force_initialise(self) -> None:
+    def _force_initialise(self) -> bool:
+        """Start the map with what there is at end of stream; True when there was no parallax at all."""
+        g = self.graph
+        if len(g) > 1 and init.parallax(g) < self.params.init.min_flow:
+            init.start_static(g)
+            self.initialised = True
+            return True
         self._try_initialise(force=True)
         self.initialised = True
+        return False
 
     # --- outputs -------------------------------------------------------------------------------------
     def _update(self, updated: list[int], every_frame: bool = False) -> Update:

@@ -91,10 +91,10 @@ def start_map(graph: KeyframeGraph, params: InitParams, ba_params: BAParams, mot
     if n < 2 or (n < params.min_keyframes and not force):
         return False
     first, last = 0, n - 1
-    tg = graph.targets(first, last)
-    flow = _mean_grid_flow(tg.target.numpy())
+    flow = parallax(graph)
     if flow < params.min_flow and not force:
         return False
+    tg = graph.targets(first, last)
     start = two_view(tg.target.numpy(), tg.confidence.numpy(), working_intrinsics(graph.intrinsics), params)
     if start is None:
         if not force:
@@ -126,6 +126,22 @@ def start_map(graph: KeyframeGraph, params: InitParams, ba_params: BAParams, mot
     graph.run(everything, temporal_pairs(everything, 2), dataclasses.replace(ba_params, iterations=params.iterations))
     logger.info("map initialised", extra={"keyframes": n, "inliers": start.inliers, "flow": round(flow, 2)})
     return True
+
+
+def parallax(graph: KeyframeGraph) -> float:
+    """Mean grid flow (grid px) between the first and the newest keyframe."""
+    return _mean_grid_flow(graph.targets(0, len(graph) - 1).target.numpy())
+
+
+def start_static(graph: KeyframeGraph) -> None:
+    """The stream ended before the camera moved enough for a two-view start (a fixed camera watching people):
+    every keyframe keeps the first pose and a constant disparity; frames are still aligned to them, so a camera
+    that did move a little gets that motion, and one that did not stays put."""
+    dev, dtype = graph.device, torch.float64
+    for k in range(len(graph)):
+        graph.poses[k] = torch.eye(4, dtype=dtype, device=dev)
+        graph.disparity[k] = torch.ones(graph.grid_hw, dtype=dtype, device=dev)
+    logger.info("no parallax by end of stream: keyframes keep the first pose", extra={"keyframes": len(graph)})
 
 
 def _mean_grid_flow(targets: np.ndarray) -> float:

@@ -54,4 +54,6 @@ class FrontendParams:
     focal_after: int = 6  # the focal length is refined once the window holds this many keyframes
     focal_until: int = 30  # ... and frozen after this many keyframes: under long forward motion focal and depth
     # trade off, and the focal drifts (KITTI 07: 455 -> 371 working px over frames 60-100 when never frozen)
+    max_step_growth: float = 4.0  # BA results whose longest keyframe step grows beyond this x the start's are refused
+    predict_flow: bool = True  # after the start, DIS flow targets begin at the flow the current state induces
     focal_range: tuple[float, float] = (0.6, 1.6)  # BA results with focal outside this x the first guess are refused

@@ -1,0 +1,103 @@
+"""A source through the features keyframe selector and the BA frontend, in one process (no bus, no DINO).
+
+The same per-frame path as `kmvipe run` minus transport and codes (so the kernel is the fixed one): resize to the
+working size, DIS keyframe test, keyframes into ``Frontend.add_keyframe``, other frames (lite grey) into
+``Frontend.add_frame``, ``finish`` at the end. Reports ATE (Sim(3)) over every frame with a pose when the source
+has ground truth, how many frames got a pose, keyframes, the focal length, seconds per keyframe, and the drift from
+the first pose (rotation and translation: a static camera must stay put). It is the quick loop for tuning the
+frontend; the full pipeline is ``kmvipe run SOURCE``.
+
+Usage:
+  python bench/frontend.py ../shared/data/kitti07_160 --focal 919.2      # KITTI 07 from a +30 % focal
+  python bench/frontend.py ../shared/data/vtest/vtest.avi --max-frames 300
+"""
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from services.ba.frontend.frontend import FrameInput, Frontend, KeyframeInput
+from services.ba.settings import BaSettings
+from services.common.config import LogSettings
+from services.common.logs import setup_logging
+from services.evaluation.trajectory_io import Trajectory, write_tum
+from services.features.core.geometry import Intrinsics, fov_prior, resize_to_working, to_grey, working_size
+from services.features.core.keyframes import KeyframeParams, KeyframeSelector
+from services.ingest.sources import SourceFrame, open_source
+from services.runner.groundtruth import evaluate
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("source", help="anything `kmvipe run` takes: image folder, video, synth:...")
+    parser.add_argument("--first", type=int, default=0, help="skip the frames before this one")
+    parser.add_argument("--max-frames", type=int, default=None)
+    parser.add_argument("--kf-threshold", type=float, default=KeyframeParams.threshold_grid_px)
+    parser.add_argument("--focal", type=float, default=None, help="start focal (original px); default: FOV prior")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--verbose", action="store_true", help="print every keyframe's last steps")
+    parser.add_argument("--out", type=Path, default=None, help="write the TUM trajectory here")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    setup_logging("bench-frontend", LogSettings(level="WARNING"))
+    frames = [f for f in open_source(args.source).frames() if isinstance(f, SourceFrame)]
+    frames = frames[args.first:][: args.max_frames]
+    frontend = Frontend(BaSettings().frontend_params(), "cpu")
+    selector = KeyframeSelector(KeyframeParams(threshold_grid_px=args.kf_threshold))
+    n_kf, ba_seconds, t_start = 0, 0.0, time.perf_counter()
+    height, width = frames[0].rgb.shape[:2]
+    size = working_size(height, width)
+    start = fov_prior(height, width) if args.focal is None else Intrinsics(args.focal, args.focal, (width - 1) / 2,
+                                                                             (height - 1) / 2)
+    k_work = start.scaled(size.scale_x, size.scale_y).as_array()
+    for n, frame in enumerate(tqdm(frames, unit="frame")):
+        work = to_grey(resize_to_working(frame.rgb, size))
+        if selector.observe(work).is_keyframe or n == len(frames) - 1:
+            selector.set_reference(work)
+            t0 = time.perf_counter()
+            frontend.add_keyframe(KeyframeInput(frame.index, frame.t_ns, work, k_work))
+            ba_seconds += time.perf_counter() - t0
+            n_kf += 1
+            if args.verbose:
+                _print_steps(frontend, frame.index, time.perf_counter() - t0)
+        else:
+            lite = cv2.resize(work, (work.shape[1] // 2, work.shape[0] // 2), interpolation=cv2.INTER_AREA)
+            frontend.add_frame(FrameInput(frame.index, frame.t_ns, lite))
+    t0 = time.perf_counter()
+    poses = frontend.finish().poses
+    finish_seconds = time.perf_counter() - t0
+    est = Trajectory(poses.stamps_ns / 1e9, poses.poses)
+    focal = frontend.intrinsics[0] / size.scale_x
+    print(f"frames {len(frames)}  posed {len(poses.frame_seqs)}  keyframes {n_kf} (graph {len(frontend.graph)})")
+    print(f"focal {focal:.1f} px (start {start.fx:.1f})")
+    print(f"BA {ba_seconds:.1f} s ({ba_seconds / max(n_kf, 1):.2f} s/keyframe), finish {finish_seconds:.1f} s, "
+          f"wall {time.perf_counter() - t_start:.1f} s")
+    rel = np.linalg.inv(poses.poses[0]) @ poses.poses
+    angles = np.degrees(np.arccos(np.clip((np.trace(rel[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    print(f"drift from the first pose: max rotation {angles.max():.3f} deg, max translation "
+          f"{np.linalg.norm(rel[:, :3, 3], axis=1).max():.4f} (map units)")
+    ate = evaluate(args.source, est)
+    if ate is not None:
+        print(f"ATE sim3 rmse {ate.rmse:.3f} m  max {ate.max:.3f} m  pairs {ate.n_pairs}")
+    if args.out:
+        write_tum(args.out, est)
+
+
+def _print_steps(frontend: Frontend, seq: int, seconds: float) -> None:
+    g = frontend.graph
+    if not frontend.initialised or len(g) < 2:
+        tqdm.write(f"kf {seq}: not initialised ({len(g)} keyframes)")
+        return
+    steps = [float((g.poses[k][:3, 3] - g.poses[k - 1][:3, 3]).norm()) for k in range(max(1, len(g) - 4), len(g))]
+    tqdm.write(f"kf {seq}: last steps {' '.join(f'{s:.3f}' for s in steps)}  "
+               f"focal {float(g.intrinsics[0]) * 8:.1f} (working)  {seconds:.1f} s")
+
+
+if __name__ == "__main__":
+    main()
