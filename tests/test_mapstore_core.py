@@ -7,7 +7,7 @@ from collections import defaultdict
 import numpy as np
 import pytest
 
-from services.mapstore.config import ConsistencyParams, FusionParams, MapParams, PointParams
+from services.mapstore.config import CarvingParams, ConsistencyParams, FusionParams, MapParams, PointParams
 from services.mapstore.core.consistency import NeighbourView, depth_consistency
 from services.mapstore.core.fusion import voxel_coords, voxel_keys
 from services.mapstore.core.geometry import backproject_grid, grid_intrinsics, project, sample_cell_colours
@@ -125,7 +125,9 @@ def test_relative_voxel_size_is_fraction_of_median_depth():
 
 @pytest.mark.parametrize("neighbours", [0, 2])
 def test_pose_correction_moves_exactly_that_keyframes_points(neighbours):
+    # neighbours 0 also switches carving off: with no check across keyframes, a keyframe is fused in isolation
     params = MapParams(consistency=ConsistencyParams(neighbours=neighbours, rel_tolerance=0.5),
+                       carving=CarvingParams(later_keyframes=16 if neighbours else 0),
                        fusion=FusionParams(voxel_size=0.05))
     m = build_map(params)
     before = {i: m.keyframe_points(i) for i in m.contents}

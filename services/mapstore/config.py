@@ -40,6 +40,35 @@ class ConsistencyParams:
 
 
 @dataclass(frozen=True)
+class CarvingParams:
+    """Free-space carving: a keyframe's point that later keyframes see through (a surface clearly behind it) has
+    moved away and is left out. Only *later* keyframes vote, so an object that arrived somewhere (contradicting
+    earlier views of the empty place) stays: the most recent observations are the current truth."""
+
+    later_keyframes: int = 16
+    """Keyframes after a keyframe (by id) whose depths may carve its points; 0 disables carving. Also how far
+    back a changed keyframe re-checks earlier ones, so it bounds the work per update."""
+    recent_views: int = 3
+    """Per point, the most recent later keyframes that see it (agree or see through it) that decide."""
+    min_violations: int = 2
+    """A point is carved when at least this many of its deciding views see through it, and they outnumber the
+    views that agree with it."""
+    free_margin: float = 0.1
+    """A view sees through a point at depth z when the nearest surface around its projection is beyond
+    (1 + free_margin)·z: relative, so it holds for maps with no metric scale."""
+    agree_tolerance: float = 0.05
+    """A view agrees with a point when |z − z_view| ≤ agree_tolerance · z_view at its projection."""
+    footprint: Literal["cell", "corners", "3x3"] = "corners"
+    """Cells around a point's projection whose nearest surface must lie behind it: "cell" (the one it rounds to),
+    "corners" (the 2×2 whose centres surround it) or "3x3". More than one cell keeps a point at a depth edge from
+    being carved by a projection that rounds onto the background."""
+    min_reliability: float = 0.1
+    """A view's cell carves only if its flow confidence × static weight is at least this (a moving person or a
+    badly tracked cell says nothing about free space); the default is the weight a cell needs to be a map point
+    (PointParams.min_weight): evidence of free space is trusted as much as evidence of a surface."""
+
+
+@dataclass(frozen=True)
 class FusionParams:
     """Voxel fusion of keyframe points."""
 
@@ -83,6 +112,7 @@ class MapParams:
 
     points: PointParams = field(default_factory=PointParams)
     consistency: ConsistencyParams = field(default_factory=ConsistencyParams)
+    carving: CarvingParams = field(default_factory=CarvingParams)
     fusion: FusionParams = field(default_factory=FusionParams)
     regions: RegionParams = field(default_factory=RegionParams)
     scoring: ScoreParams = field(default_factory=ScoreParams)
@@ -107,6 +137,12 @@ class MapstoreSettings(BaseSettings):
     """Keyframes on each side a keyframe's depth is checked against (0 disables)."""
     min_weight: float = 0.1
     """Points with confidence × static × consistency below this are left out."""
+    carve_keyframes: int = 16
+    """Later keyframes whose depths may carve a keyframe's points as free space (moved objects); 0 disables."""
+    carve_views: int = 3
+    """Most recent later views of a point that decide whether it is carved."""
+    carve_min_violations: int = 2
+    """Of those, how many must see through the point (and outnumber the agreeing ones) to carve it."""
     device: str = "auto"
     """torch device for scoring."""
     store_images: bool = True
@@ -114,13 +150,15 @@ class MapstoreSettings(BaseSettings):
     export_dir: str = ""
     """When set, write map.ply, depth maps and COLMAP cameras here at end of stream."""
     upstream: str = "ba"
+    """The stage whose end of stream ends the map: it is exported and the EOS forwarded as ``mapstore``."""
     eos_wait_s: float = 10.0
     """How long ba's EOS waits for ba's final graph (they travel on different keys) before the map is exported."""
-    """The stage whose end of stream ends the map: it is exported and the EOS forwarded as ``mapstore``."""
 
     def map_params(self) -> MapParams:
         return MapParams(points=PointParams(min_weight=self.min_weight),
                          consistency=ConsistencyParams(neighbours=self.consistency_neighbours),
+                         carving=CarvingParams(later_keyframes=self.carve_keyframes, recent_views=self.carve_views,
+                                               min_violations=self.carve_min_violations),
                          fusion=FusionParams(voxel_size=self.voxel_size, voxel_mode=self.voxel_mode),
                          scoring=ScoreParams(device=self.device))
 

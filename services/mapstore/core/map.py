@@ -1,8 +1,9 @@
 """The keyframe-anchored map: keyframes (codes, colours, depth, pose) and their voxel fusion.
 
-Keyframes whose pose or depth changed — and their consistency neighbours, whose check depends on
-them — are marked dirty; `refresh()` re-fuses exactly those by subtracting their old contribution and
-adding the new one.
+Keyframes whose pose or depth changed — and their consistency neighbours, whose check depends on them — are
+marked dirty; `refresh()` re-fuses exactly those by subtracting their old contribution and adding the new one.
+The earlier keyframes a changed keyframe may carve (core/carving.py) are re-checked first: only those whose
+carved cells changed are re-fused.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from typing import NamedTuple
 import numpy as np
 
 from services.mapstore.config import MapParams
+from services.mapstore.core.carving import CarveView, free_space_votes
 from services.mapstore.core.consistency import NeighbourView, depth_consistency
 from services.mapstore.core.fusion import Contribution, FusedVoxels, VoxelGrid, make_contribution
 from services.mapstore.core.keyframe import KeyframeContent, KeyframeDepth, candidate_points, world_points
@@ -26,7 +28,7 @@ class KeyframePoints(NamedTuple):
 
     cells: np.ndarray  # (M,) int64 flat grid cell index r·w + c
     xyz: np.ndarray  # (M, 3) float64 world coordinates under the keyframe's latest pose
-    weight: np.ndarray  # (M,) float64 confidence × static × consistency
+    weight: np.ndarray  # (M,) float64 confidence × static × consistency (carved points are left out)
     codes: np.ndarray  # (M, K) float16
     colours: np.ndarray  # (M, 3) uint8
 
@@ -58,6 +60,8 @@ class KeyframeMap:
         self._grid: VoxelGrid | None = None
         self._contrib: dict[int, Contribution] = {}
         self._dirty: set[int] = set()
+        self._recheck: set[int] = set()  # keyframes whose carving may have changed
+        self._carved: dict[int, np.ndarray] = {}  # per fused keyframe: (C,) int64 cells carved when it was fused
         self._ready: list[int] = []  # sorted ids with content, depth and pose
         self._fused_cache: FusedVoxels | None = None
         self.revision = 0
@@ -104,12 +108,33 @@ class KeyframeMap:
             self._ready.pop(pos)
         self._dirty.add(kf_id)
         self._dirty.update(self._neighbours(kf_id))
+        self._recheck.update(self._earlier(kf_id))
 
     def _neighbours(self, kf_id: int) -> list[int]:
         n = self.params.consistency.neighbours
         pos = bisect_left(self._ready, kf_id)
         after = pos + 1 if pos < len(self._ready) and self._ready[pos] == kf_id else pos
         return self._ready[max(0, pos - n) : pos] + self._ready[after : after + n]
+
+    def _earlier(self, kf_id: int) -> list[int]:
+        """The ready keyframes before `kf_id` whose points it may carve."""
+        pos = bisect_left(self._ready, kf_id)
+        return self._ready[max(0, pos - self.params.carving.later_keyframes) : pos]
+
+    def _later(self, kf_id: int) -> list[int]:
+        """The ready keyframes after `kf_id` that may carve its points, most recent first."""
+        pos = bisect_left(self._ready, kf_id)
+        after = pos + 1 if pos < len(self._ready) and self._ready[pos] == kf_id else pos
+        return self._ready[after : after + self.params.carving.later_keyframes][::-1]
+
+    def _carve_view(self, kf_id: int) -> CarveView:
+        d = self.depths[kf_id]
+        reliability = None
+        if d.static_weight is not None or d.confidence is not None:
+            ones = np.ones(d.disparity.shape, np.float64)
+            reliability = ((ones if d.confidence is None else d.confidence)
+                           * (ones if d.static_weight is None else d.static_weight))
+        return CarveView(np.linalg.inv(self.poses[kf_id]), d.disparity, d.intrinsics, reliability)
 
     # ----- fusion -------------------------------------------------------------------------
     @property
@@ -118,19 +143,34 @@ class KeyframeMap:
         return set(self._dirty)
 
     def keyframe_points(self, kf_id: int) -> KeyframePoints:
-        """The points keyframe `kf_id` contributes under its latest pose, depth and neighbours."""
+        """The points keyframe `kf_id` contributes under its latest pose, depth, neighbours and later keyframes."""
+        return self._points(kf_id)[0]
+
+    def _points(self, kf_id: int) -> tuple[KeyframePoints, np.ndarray]:
+        """(the keyframe's points, (C,) int64 its candidate cells carved as free space)."""
         content, depth = self.contents[kf_id], self.depths[kf_id]
-        pose = self.poses[kf_id]
         cand = candidate_points(depth, self.params.points)
-        xyz = world_points(cand.points_cam, pose)
+        xyz = world_points(cand.points_cam, self.poses[kf_id])
         views = [NeighbourView(np.linalg.inv(self.poses[j]), self.depths[j].disparity, self.depths[j].intrinsics)
                  for j in self._neighbours(kf_id)]
         weight = cand.base_weight * depth_consistency(xyz, views, self.params.consistency)
-        keep = weight >= self.params.points.min_weight
+        carved = self._carved_mask(xyz, kf_id)
+        keep = (weight >= self.params.points.min_weight) & ~carved
         cells = cand.cells[keep]
         k = content.codes.shape[2]
-        return KeyframePoints(cells, xyz[keep], weight[keep], content.codes.reshape(-1, k)[cells],
-                              content.colours.reshape(-1, 3)[cells])
+        points = KeyframePoints(cells, xyz[keep], weight[keep], content.codes.reshape(-1, k)[cells],
+                                content.colours.reshape(-1, 3)[cells])
+        return points, cand.cells[carved]
+
+    def _carved_mask(self, xyz: np.ndarray, kf_id: int) -> np.ndarray:
+        views = [self._carve_view(j) for j in self._later(kf_id)]
+        return free_space_votes(xyz, views, self.params.carving).carved
+
+    def _carving_changed(self, kf_id: int) -> bool:
+        """Whether a fused keyframe's carved cells differ now from when it was fused (its own pose/depth unchanged)."""
+        cand = candidate_points(self.depths[kf_id], self.params.points)
+        carved = cand.cells[self._carved_mask(world_points(cand.points_cam, self.poses[kf_id]), kf_id)]
+        return not np.array_equal(carved, self._carved.get(kf_id))
 
     def _ensure_voxel_size(self, first_kf: int) -> None:
         if self.voxel_size is not None:
@@ -143,16 +183,20 @@ class KeyframeMap:
 
     def refresh(self) -> RefreshReport:
         """Re-fuse every dirty keyframe (subtract its old contribution, add the new one)."""
+        recheck = self._recheck - self._dirty
+        self._dirty.update(k for k in recheck if k not in self._carved or self._carving_changed(k))
+        self._recheck.clear()
         dirty = sorted(self._dirty)
         self._dirty.clear()
         for kf_id in dirty:
             old = self._contrib.pop(kf_id, None)
+            self._carved.pop(kf_id, None)
             if old is not None:
                 self._grid.apply(old, -1)
             if not self._is_ready(kf_id):
                 continue
             self._ensure_voxel_size(kf_id)
-            pts = self.keyframe_points(kf_id)
+            pts, self._carved[kf_id] = self._points(kf_id)
             if self._grid is None:
                 self._grid = VoxelGrid(pts.codes.shape[1])
             contribution = make_contribution(pts.xyz, pts.weight, pts.codes, pts.colours, self.voxel_size)
@@ -178,6 +222,6 @@ class KeyframeMap:
         self.voxel_size = voxel_size
         if voxel_size is None and self.params.fusion.voxel_mode == "absolute":
             self.voxel_size = self.params.fusion.voxel_size
-        self._grid, self._contrib = None, {}
+        self._grid, self._contrib, self._carved, self._recheck = None, {}, {}, set()
         self._dirty = set(self.contents) | set(self.depths) | set(self.poses)
         return self.refresh()
