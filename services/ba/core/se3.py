@@ -160,9 +160,25 @@ def compose(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return a @ b
 
 
+def orthonormalize(pose: torch.Tensor, steps: int = 2) -> torch.Tensor:
+    """Rigid transforms ``(..., 4, 4)`` whose rotation block is pulled back onto SO(3) (Newton–Schulz polar
+    iteration ``R <- R (3I - R^T R) / 2``: it squares the deviation each step and, unlike an SVD, is smooth for
+    autograd at exact rotations; meant for near-rotations, as poses are).
+
+    Products of poses drift off SO(3) by rounding, and a constant-velocity prediction ``T1 T0^-1 T1`` roughly
+    triples that drift every keyframe; unchecked, it reached det R = 1.06 after 14 KITTI keyframes and 1e28 after
+    22, and every later pose exploded. Every update and prediction goes through here."""
+    _check_last(pose, (4, 4), "pose")
+    rot = pose[..., :3, :3]
+    eye = torch.eye(3, dtype=pose.dtype, device=pose.device)
+    for _ in range(steps):
+        rot = 0.5 * rot @ (3 * eye - rot.transpose(-1, -2) @ rot)
+    return _make(rot, pose[..., :3, 3])
+
+
 def retract(pose: torch.Tensor, xi: torch.Tensor) -> torch.Tensor:
-    """Left update ``exp(xi) @ pose``: poses ``(..., 4, 4)``, tangent ``(..., 6)`` -> ``(..., 4, 4)``."""
-    return exp(xi) @ pose
+    """Left update ``exp(xi) @ pose``: poses ``(..., 4, 4)``, tangent ``(..., 6)`` -> ``(..., 4, 4)`` (kept rigid)."""
+    return orthonormalize(exp(xi) @ pose)
 
 
 def adjoint(pose: torch.Tensor) -> torch.Tensor:

@@ -164,7 +164,7 @@ class Frontend:
             return torch.eye(4, dtype=torch.float64, device=dev), torch.ones(h, w, dtype=torch.float64, device=dev)
         pose = g.poses[-1]
         if len(g) >= 2 and self.initialised:
-            pose = pose @ (se3.inverse(g.poses[-2]) @ g.poses[-1])
+            pose = se3.orthonormalize(pose @ (se3.inverse(g.poses[-2]) @ g.poses[-1]))
         # the previous keyframe's map: neighbouring keyframes see similar structure (road near, sky far)
         disp = g.disparity[-1].clone() if self.initialised else torch.ones(h, w, dtype=torch.float64, device=dev)
         if prior is not None and self.metric:
@@ -204,7 +204,7 @@ class Frontend:
             rel = rel.clone()
             rel[:3, 3] *= min(1.0, self._recent_step(k) / length)
         logger.info("keyframe pose implausible; bounded constant-velocity prediction kept", extra={"seq": g.seqs[k]})
-        return g.poses[k - 1] @ rel
+        return se3.orthonormalize(g.poses[k - 1] @ rel)
 
     def _window(self) -> list[int]:
         n = len(self.graph)

@@ -156,12 +156,13 @@ class KeyframeGraph:
     def _jumped(self, start: BAState, state: BAState) -> bool:
         """A keyframe whose flow constrains nothing (all edges lost) can fly off along the free direction of its
         pose; one such step, kept, would blow up every later constant-velocity prediction. A result is refused
-        when its longest step between consecutive keyframes exceeds ``max_step_growth`` times the start's."""
+        when its longest step between consecutive keyframes exceeds ``max_step_growth`` times the start's median
+        step (the median: a start that already holds one wild step must not license the next)."""
         if len(start.poses) < 3:
             return False
         before = (start.poses[1:, :3, 3] - start.poses[:-1, :3, 3]).norm(dim=-1)
         after = (state.poses[1:, :3, 3] - state.poses[:-1, :3, 3]).norm(dim=-1)
-        return float(after.max()) > self.max_step_growth * float(before.max())
+        return float(after.max()) > self.max_step_growth * float(before.median())
 
     def _store(self, window: list[int], result: BAResult, ii: torch.Tensor, conf: torch.Tensor) -> None:
         state = result.state
