@@ -53,8 +53,9 @@ def test_ingest_survives_garbage_on_credit_and_still_streams(unix_endpoint):
         finally:
             ingest.terminate()
             _, log = ingest.communicate(timeout=30)
-    assert [type(d.msg) for d in got] == [Frame, Frame, Frame, Eos], log
-    assert [d.msg.seq for d in got[:3]] == [0, 1, 2]
+    # Zenoh orders messages per key only: under load the EOS can overtake the last frames (docs/ARCHITECTURE.md)
+    assert sorted(type(d.msg).__name__ for d in got if d is not None) == ["Eos", "Frame", "Frame", "Frame"], log
+    assert [d.msg.seq for d in got if isinstance(d.msg, Frame)] == [0, 1, 2]
     assert "dropped bad payload" in log  # counted and logged once per kind, not once per payload
     assert log.count("dropped bad payload") < 10
 

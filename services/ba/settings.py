@@ -18,8 +18,9 @@ class BaSettings(BASettings):
 
     stream: str = "cam0"
     """Stream name ``<s>`` in ``kmvipe/<s>/...``."""
-    threads: int = 2
-    """CPU threads for torch (2 on the reference machine)."""
+    threads: int = 1
+    """CPU threads for torch. One: ba shares the 2 reference cores with features, and there two threads measured
+    slower than one (1.71 vs 0.49 s per iteration at 25 keyframes, docs/BENCHMARKS.md)."""
     iterations: int = 4
     """LM iterations of the window BA per new keyframe."""
     global_iterations: int = 20

@@ -3,21 +3,10 @@ from __future__ import annotations
 
 from typing import Iterator
 
-from ..common.errors import SourceError
-from ..synth import SynthConfig, SynthWorld
+from ..common.errors import ConfigError, SourceError
+from ..synth import SynthWorld
+from ..synth.spec import config_from_options
 from .sources import SourceFrame
-
-# option in the spec → (SynthConfig field, converter)
-_OPTIONS = {
-    "frames": ("n_frames", int),
-    "seed": ("seed", int),
-    "width": ("width", int),
-    "height": ("height", int),
-    "person": ("person", bool),
-    "chair": ("moved_chair", bool),
-    "static": ("camera", lambda v: "static" if v else "orbit"),
-}
-
 
 class SynthSource:
     """Renders frames on the fly; ``depth=1`` also sends the exact depth as if from a depth sensor."""
@@ -25,11 +14,11 @@ class SynthSource:
     live = False
 
     def __init__(self, depth: int = 0, **options: int):
-        unknown = sorted(set(options) - set(_OPTIONS))
-        if unknown:
-            raise SourceError(f"unknown synthetic source option(s) {unknown}; known: depth, {', '.join(_OPTIONS)}")
-        fields = {_OPTIONS[k][0]: _OPTIONS[k][1](v) for k, v in options.items()}
-        self.world = SynthWorld(SynthConfig(**fields))
+        try:
+            config = config_from_options(**options)
+        except ConfigError as exc:
+            raise SourceError(str(exc)) from exc
+        self.world = SynthWorld(config)
         self.fps = self.world.config.fps
         self.name = "synth:" + ",".join(f"{k}={v}" for k, v in sorted(options.items()))
         self.with_depth = bool(depth)

@@ -10,8 +10,8 @@ from __future__ import annotations
 from services.common.errors import ConfigError
 from services.synth.config import SynthConfig
 
-# option in the spec → (SynthConfig field, converter); mirrors services/ingest/synth_source.py
-_OPTIONS = {
+# option in the spec → (SynthConfig field, converter); ingest's synth: source uses the same table
+OPTIONS = {
     "frames": ("n_frames", int),
     "seed": ("seed", int),
     "width": ("width", int),
@@ -35,8 +35,17 @@ def config_from_spec(spec: str) -> SynthConfig:
             raise ConfigError(f"bad synthetic source option {item!r}: use e.g. synth:frames=200,seed=0")
         if key in _IGNORED:
             continue
-        if key not in _OPTIONS:
-            raise ConfigError(f"unknown synthetic source option {key!r}; known: {', '.join([*_OPTIONS, *_IGNORED])}")
-        name, convert = _OPTIONS[key]
+        if key not in OPTIONS:
+            raise ConfigError(f"unknown synthetic source option {key!r}; known: {', '.join([*OPTIONS, *_IGNORED])}")
+        name, convert = OPTIONS[key]
         fields[name] = convert(int(value))
     return SynthConfig(**fields)
+
+
+def config_from_options(**options: int) -> SynthConfig:
+    """The :class:`SynthConfig` of already-split integer options (``frames=200, seed=0``); KeyError-free:
+    unknown options raise ConfigError naming the known ones."""
+    unknown = sorted(set(options) - set(OPTIONS))
+    if unknown:
+        raise ConfigError(f"unknown synthetic source option(s) {unknown}; known: {', '.join([*OPTIONS, *_IGNORED])}")
+    return SynthConfig(**{OPTIONS[k][0]: OPTIONS[k][1](v) for k, v in options.items()})
