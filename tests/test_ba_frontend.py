@@ -143,3 +143,21 @@ def test_a_fixed_camera_watching_a_moving_object_stays_put():
     angles = np.degrees(np.arccos(np.clip((np.trace(rel[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1)))
     assert angles.max() < 0.2  # the crossing object pulls a frame by <0.1 deg
     assert np.linalg.norm(rel[:, :3, 3], axis=1).max() < 0.01  # map units: the constant disparity is 1
+
+
+def test_a_ba_result_whose_keyframe_flies_off_is_refused():
+    from services.ba.core.ba import BAState
+    from services.ba.frontend.graph import KeyframeGraph
+    from services.ba.core.params import FlowParams
+
+    graph = KeyframeGraph(torch.tensor([50.0, 50.0, 15.5, 11.5], dtype=torch.float64), (24, 32), FlowParams(),
+                          torch.device("cpu"), max_step_growth=4.0)
+    poses = torch.eye(4, dtype=torch.float64).repeat(5, 1, 1)
+    poses[:, 0, 3] = torch.tensor([0.0, 0.3, 0.6, 2.0, 3.4])  # turning (short steps), then driving (long ones)
+    start = BAState(poses, torch.ones(5, 24, 32, dtype=torch.float64), graph.intrinsics)
+    corrected = poses.clone()
+    corrected[:, 0, 3] = torch.tensor([0.0, 0.35, 0.7, 2.2, 3.5])
+    assert not graph._jumped(start, BAState(corrected, start.disparity, start.intrinsics))
+    flown = poses.clone()
+    flown[4, 0, 3] = 2.0 + 8.0  # the newest keyframe slid along its free direction
+    assert graph._jumped(start, BAState(flown, start.disparity, start.intrinsics))

@@ -156,13 +156,14 @@ class KeyframeGraph:
     def _jumped(self, start: BAState, state: BAState) -> bool:
         """A keyframe whose flow constrains nothing (all edges lost) can fly off along the free direction of its
         pose; one such step, kept, would blow up every later constant-velocity prediction. A result is refused
-        when its longest step between consecutive keyframes exceeds ``max_step_growth`` times the start's median
-        step (the median: a start that already holds one wild step must not license the next)."""
+        when any step between consecutive keyframes grows beyond ``max_step_growth`` times its length at the start
+        (per step: a whole trajectory's steps differ by more than that between turning and driving)."""
         if len(start.poses) < 3:
             return False
         before = (start.poses[1:, :3, 3] - start.poses[:-1, :3, 3]).norm(dim=-1)
         after = (state.poses[1:, :3, 3] - state.poses[:-1, :3, 3]).norm(dim=-1)
-        return float(after.max()) > self.max_step_growth * float(before.median())
+        floor = 1e-3 * float(before.median())  # a keyframe pair at one place may move apart a little
+        return bool((after > self.max_step_growth * before.clamp_min(floor)).any())
 
     def _store(self, window: list[int], result: BAResult, ii: torch.Tensor, conf: torch.Tensor) -> None:
         state = result.state
