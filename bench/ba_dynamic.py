@@ -26,12 +26,12 @@ import torch
 
 from services.ba.core import ba, flow, se3, synthetic
 from services.ba.core.params import BAParams, FlowParams, RobustParams
+from services.ba.frontend.graph import GRID, grid_intrinsics
 from services.evaluation.ate import umeyama
 from services.synth.config import SynthConfig
 from services.synth.oracle import label_vectors, oracle_features
 from services.synth.render import SynthWorld
 
-GRID = 8
 
 
 def _pair(text: str) -> tuple[float, float]:
@@ -62,9 +62,7 @@ def build(args):
     problem = ba.BAProblem(ii, jj, torch.from_numpy(np.stack([t.target for t in tg])).double(),
                            torch.from_numpy(np.stack([t.confidence for t in tg])).double(),
                            codes=torch.from_numpy(codes).double())
-    fx, fy, cx, cy = frames[0].intrinsics
-    intr = torch.tensor([fx / GRID, fy / GRID, (cx + 0.5) / GRID - 0.5, (cy + 0.5) / GRID - 0.5],
-                        dtype=torch.float64)
+    intr = grid_intrinsics(frames[0].intrinsics)
     gt = torch.from_numpy(np.stack([f.world_from_cam for f in frames]))
     depth = np.stack([f.depth[centre, centre] for f in frames])
     names = [world.instances[k].name for k in moving]

@@ -12,12 +12,12 @@ import torch
 
 from services.ba.core import ba, flow, synthetic
 from services.ba.core.params import BAParams, FlowParams, RobustParams
+from services.ba.frontend.graph import GRID, grid_intrinsics
 from services.evaluation.ate import umeyama
 from services.synth.config import SynthConfig
 from services.synth.oracle import label_vectors, oracle_features
 from services.synth.render import SynthWorld
 
-GRID = 8
 FRAMES = [40, 44, 48, 52, 56, 60]  # person walks frames 30..80, chair slides 40..70 (of 200)
 
 
@@ -38,9 +38,7 @@ def _scene():
     problem = ba.BAProblem(ii, jj, torch.from_numpy(np.stack([t.target for t in tg])).double(),
                            torch.from_numpy(np.stack([t.confidence for t in tg])).double(),
                            codes=torch.from_numpy(codes).double())
-    fx, fy, cx, cy = frames[0].intrinsics
-    intr = torch.tensor([fx / GRID, fy / GRID, (cx + 0.5) / GRID - 0.5, (cy + 0.5) / GRID - 0.5],
-                        dtype=torch.float64)
+    intr = grid_intrinsics(frames[0].intrinsics)
     gt = torch.from_numpy(np.stack([f.world_from_cam for f in frames]))
     disp0 = float(np.median(1 / np.stack([f.depth[centre, centre] for f in frames])))
     start = ba.BAState(synthetic.perturb_poses(gt, 0.02, 1.0, torch.Generator().manual_seed(1)),

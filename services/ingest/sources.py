@@ -13,7 +13,7 @@ from typing import Iterator, Protocol
 import cv2
 import numpy as np
 
-from ..common.errors import SourceError
+from ..common.errors import ConfigError, SourceError
 
 log = logging.getLogger(__name__)
 
@@ -172,25 +172,19 @@ class ImageFolderSource:
             yield SourceFrame(index, entry.t_ns, _bgr_to_rgb(image), depth)
 
 
-def _synth_options(spec: str) -> dict[str, int]:
-    body = spec.split(":", 1)[1].lstrip("/")
-    options = {}
-    for item in filter(None, body.split(",")):
-        key, _, value = item.partition("=")
-        if not value.lstrip("-").isdigit():
-            raise SourceError(f"bad synthetic source option {item!r}: use e.g. synth:frames=200,seed=0")
-        options[key.strip()] = int(value)
-    return options
-
-
 def open_source(spec: str, fps: float | None = None, use_depth: bool = True) -> Source:
     """Open a source from its spec (see IngestSettings.source)."""
     if not spec:
         raise SourceError("no source given: pass a video file, image folder, camera index, URL or synth:")
     if spec.startswith("synth:"):
+        from ..synth.spec import spec_options
         from .synth_source import SynthSource  # the renderer is only loaded when asked for
 
-        return SynthSource(**_synth_options(spec))
+        try:
+            options = spec_options(spec)
+        except ConfigError as exc:
+            raise SourceError(str(exc)) from exc
+        return SynthSource(**options)
     if spec.isdigit() or spec.startswith("/dev/video"):
         return CaptureSource(int(spec) if spec.isdigit() else spec, spec, live=True)
     if "://" in spec:

@@ -8,6 +8,7 @@ from ..synth import SynthWorld
 from ..synth.spec import config_from_options
 from .sources import SourceFrame
 
+
 class SynthSource:
     """Renders frames on the fly; ``depth=1`` also sends the exact depth as if from a depth sensor."""
 

@@ -23,29 +23,28 @@ OPTIONS = {
 _IGNORED = ("depth",)  # source options that do not change the world
 
 
-def config_from_spec(spec: str) -> SynthConfig:
-    """The :class:`SynthConfig` a ``synth:`` source spec renders; ConfigError on anything else."""
+def spec_options(spec: str) -> dict[str, int]:
+    """The integer options of a ``synth:`` source spec (``synth:frames=200,seed=0`` → ``{"frames": 200, ...}``)."""
     if not spec.startswith("synth:"):
         raise ConfigError(f"not a synthetic source spec: {spec!r} (expected synth:frames=...,seed=...)")
-    fields = {}
+    options = {}
     for item in filter(None, spec.split(":", 1)[1].lstrip("/").split(",")):
         key, _, value = item.partition("=")
-        key = key.strip()
         if not value.lstrip("-").isdigit():
             raise ConfigError(f"bad synthetic source option {item!r}: use e.g. synth:frames=200,seed=0")
-        if key in _IGNORED:
-            continue
-        if key not in OPTIONS:
-            raise ConfigError(f"unknown synthetic source option {key!r}; known: {', '.join([*OPTIONS, *_IGNORED])}")
-        name, convert = OPTIONS[key]
-        fields[name] = convert(int(value))
-    return SynthConfig(**fields)
+        options[key.strip()] = int(value)
+    return options
 
 
 def config_from_options(**options: int) -> SynthConfig:
-    """The :class:`SynthConfig` of already-split integer options (``frames=200, seed=0``); KeyError-free:
-    unknown options raise ConfigError naming the known ones."""
-    unknown = sorted(set(options) - set(OPTIONS))
+    """The :class:`SynthConfig` of integer options (``frames=200, seed=0``); source-only options (depth) are
+    ignored, unknown ones raise ConfigError naming the known ones."""
+    unknown = sorted(set(options) - set(OPTIONS) - set(_IGNORED))
     if unknown:
         raise ConfigError(f"unknown synthetic source option(s) {unknown}; known: {', '.join([*OPTIONS, *_IGNORED])}")
-    return SynthConfig(**{OPTIONS[k][0]: OPTIONS[k][1](v) for k, v in options.items()})
+    return SynthConfig(**{OPTIONS[k][0]: OPTIONS[k][1](v) for k, v in options.items() if k in OPTIONS})
+
+
+def config_from_spec(spec: str) -> SynthConfig:
+    """The :class:`SynthConfig` a ``synth:`` source spec renders; ConfigError on anything else."""
+    return config_from_options(**spec_options(spec))

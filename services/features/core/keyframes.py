@@ -93,11 +93,10 @@ class KeyframeSelector:
             return float("inf")
         if small.shape != self._ref.shape:
             raise ValueError(f"frame size changed from {self._ref.shape} to {small.shape} (flow scale)")
-        # DIS starts from a flow passed to calc() (same size, float32 2-channel). Started from the previous frame's flow, DIS follows motions far beyond its own search range: from
-        # zero, a reference 40 frames behind a car (KITTI 07) gave near-zero flow and no keyframes at all.
-        start = None if self._flow is None else self._flow.copy()
-        flow = self._dis.calc(self._ref, small, start)
-        self._flow = flow
+        # DIS refines a flow passed to calc() (same size, float32 2-channel). Started from the previous frame's
+        # flow it follows motions far beyond its own search range: from zero, a reference 40 frames behind a car
+        # (KITTI 07) gave near-zero flow and no keyframes at all.
+        self._flow = flow = self._dis.calc(self._ref, small, self._flow)  # refined in place
         grid_hw = (grey.shape[0] // GRID_STRIDE, grey.shape[1] // GRID_STRIDE)
         # flow pixels → working pixels uses the actual small/working ratio, not the nominal flow_scale
         scale = small.shape[1] / grey.shape[1]
