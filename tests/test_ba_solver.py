@@ -10,6 +10,7 @@ from services.ba.core import ba, embedding, schur, se3, synthetic
 from services.ba.core.params import BAParams, RobustParams
 
 L2 = RobustParams(use_ark=False, fixed_alpha=2.0)
+EXACT = "float64"  # per-pixel arithmetic in float64: lets the tests check costs to 1e-12 and rows to 1e-6
 
 
 def _pose_errors(est: torch.Tensor, gt: torch.Tensor) -> tuple[float, float]:
@@ -43,7 +44,7 @@ def test_static_scene_converges_to_true_poses():
     start = _start(win)
     t0, r0 = _pose_errors(start.poses, win.truth.poses)
     assert t0 > 0.03 and r0 > 1.5  # the start really is off
-    res = ba.run_ba(start, win.problem, BAParams(iterations=15, robust=L2))
+    res = ba.run_ba(start, win.problem, BAParams(iterations=15, robust=L2, compute_dtype=EXACT))
     t_err, r_err = _pose_errors(res.state.poses, win.truth.poses)
     assert t_err < 1e-3 and r_err < 0.05, (t_err, r_err)
     assert res.costs[-1] < 1e-12 * res.costs[0]
@@ -53,10 +54,19 @@ def test_static_scene_converges_to_true_poses():
     assert float(ratio.std() / ratio.mean()) < 1e-6
 
 
+def test_float32_pixel_arithmetic_reaches_the_same_accuracy():
+    """The default (float32 residuals and Jacobians, float64 camera system) meets the same 1 mm / 0.05 deg."""
+    win = synthetic.make_window(n=6, h=24, w=32, seed=0)
+    res = ba.run_ba(_start(win), win.problem, BAParams(iterations=15, robust=L2))
+    t_err, r_err = _pose_errors(res.state.poses, win.truth.poses)
+    assert t_err < 1e-3 and r_err < 0.05, (t_err, r_err)
+    assert res.state.poses.dtype == torch.float64 and res.costs[-1] < 1e-6 * res.costs[0]
+
+
 def test_focal_length_is_recovered_from_a_30_percent_error():
     win = synthetic.make_window(n=6, h=24, w=32, seed=2)
     res = ba.run_ba(_start(win, seed=3, focal_factor=0.7), win.problem,
-                    BAParams(iterations=25, optimise_focal=True, robust=L2))
+                    BAParams(iterations=25, optimise_focal=True, robust=L2, compute_dtype=EXACT))
     assert float(res.state.intrinsics[0]) == pytest.approx(float(win.truth.intrinsics[0]), rel=1e-6)
     t_err, r_err = _pose_errors(res.state.poses, win.truth.poses)
     assert t_err < 1e-3 and r_err < 0.05, (t_err, r_err)
@@ -74,23 +84,33 @@ def _linearised(seed=6, lambda_embed=1.0):
     win = synthetic.make_window(n=4, h=6, w=8, focal=8.0, radius=2, seed=seed)
     codes = _smooth_codes(4, 6, 8, 5, seed)
     problem = win.problem._replace(codes=codes)
-    params = BAParams(lambda_embed=lambda_embed, optimise_focal=True,
+    params = BAParams(lambda_embed=lambda_embed, optimise_focal=True, compute_dtype=EXACT,
                       robust=RobustParams(use_ark=True, kappa=0.5, tau=0.2))
     state = _start(win, seed=seed, trans=0.01, rot=0.5)
     return state, problem, params
 
 
+def _rows(state, problem, params):
+    """Linearised residuals at ``state`` in the test's layout: j_cam (E, P, R, 7), j_disp/residual/weight (E, P, R)."""
+    h, w = state.disparity.shape[1:]
+    prep = ba._prepare(problem, params, h, w)
+    res = ba._residuals(state, prep, params, with_jac=True)
+    eq = ba._normal_equations(res, params, ba._frozen(res, params, ba._ark(res, prep, params, None)))
+    return res, prep, eq.j_cam.permute(0, 3, 2, 1), eq.j_disp.transpose(1, 2), eq.residual.transpose(1, 2), \
+        eq.weight.transpose(1, 2), eq
+
+
 def test_normal_equation_rows_match_autograd():
     state, problem, params = _linearised()
-    res = ba._residuals(state, problem, params, with_jac=True)
-    eq = ba._normal_equations(res, params, ba._frozen(res, params))
+    res, prep, j_cam, j_disp, _, _, _ = _rows(state, problem, params)
     n, e = state.poses.shape[0], len(problem.ii)
 
     def residual_rows(xi, disp, f):
         intr = torch.cat([f.expand(2), state.intrinsics[2:]])
         moved = ba.BAState(se3.retract(state.poses, xi), disp, intr)
-        r = ba._residuals(moved, problem, params, with_jac=False)
-        return torch.cat([r.flow, r.embed.residual[..., None]], -1)  # (E, P, 3)
+        r = ba._residuals(moved, prep, params, with_jac=False)
+        # the solver's flow residual is reprojection - target
+        return torch.cat([-r.flow.transpose(1, 2), r.embed.residual[..., None]], -1)  # (E, P, 3)
 
     args = (torch.zeros(n, 6, dtype=torch.float64), state.disparity, state.intrinsics[0])
     j_xi, j_d, j_f = torch.func.jacfwd(residual_rows, argnums=(0, 1, 2))(*args)
@@ -98,38 +118,37 @@ def test_normal_equation_rows_match_autograd():
     # rows whose reprojection leaves the code map are clamped (and unused): compare the others
     use = res.embed.valid[..., None].expand(-1, -1, 3)
     assert use.float().mean() > 0.5
-    torch.testing.assert_close(eq.j_cam[..., :6][use], j_xi[idx, :, :, problem.ii][use], rtol=1e-6, atol=1e-9)
+    torch.testing.assert_close(j_cam[..., :6][use], j_xi[idx, :, :, problem.ii][use], rtol=1e-6, atol=1e-9)
     # only [xi_i, f] columns are stored: d/d xi_j must be their negative
-    torch.testing.assert_close(-eq.j_cam[..., :6][use], j_xi[idx, :, :, problem.jj][use], rtol=1e-6, atol=1e-9)
-    torch.testing.assert_close(eq.j_cam[..., 6][use], j_f[use], rtol=1e-6, atol=1e-9)
+    torch.testing.assert_close(-j_cam[..., :6][use], j_xi[idx, :, :, problem.jj][use], rtol=1e-6, atol=1e-9)
+    torch.testing.assert_close(j_cam[..., 6][use], j_f[use], rtol=1e-6, atol=1e-9)
     pix = torch.arange(48)
     j_d = j_d.reshape(e, 48, 3, n, 48)[idx[:, None], pix[None, :], :, problem.ii[:, None], pix[None, :]]
-    torch.testing.assert_close(eq.j_disp[use], j_d[use], rtol=1e-6, atol=1e-9)
+    torch.testing.assert_close(j_disp[use], j_d[use], rtol=1e-6, atol=1e-9)
 
 
 def test_schur_step_equals_dense_solve():
     state, problem, params = _linearised(seed=7)
-    res = ba._residuals(state, problem, params, with_jac=True)
-    eq = ba._normal_equations(res, params, ba._frozen(res, params))
+    _, _, j_cam, j_disp, residual, weight, eq = _rows(state, problem, params)
     n, p = state.disparity.shape[0], 48
     free = ba._free_camera_indices(n, params, None)
     zeros = torch.zeros(n, p, dtype=torch.float64)
     lm, eps = 1e-2, 1e-9
     step = schur.solve(eq, problem.ii, problem.jj, n, free, lm, eps, eps, zeros, zeros)
     # dense Jacobian over [camera variables | disparities]
-    e, r = len(problem.ii), eq.residual.shape[2]
+    e, r = len(problem.ii), residual.shape[2]
     n_cam = 6 * n + 1
     jac = torch.zeros(e, p, r, n_cam + n * p, dtype=torch.float64)
     for k in range(e):  # test-only reference assembly
         i, j = int(problem.ii[k]), int(problem.jj[k])
-        jac[k, :, :, 6 * i:6 * i + 6] += eq.j_cam[k, :, :, :6]
-        jac[k, :, :, 6 * j:6 * j + 6] -= eq.j_cam[k, :, :, :6]
-        jac[k, :, :, 6 * n] += eq.j_cam[k, :, :, 6]
-        jac[k, torch.arange(p), :, n_cam + i * p + torch.arange(p)] += eq.j_disp[k]
+        jac[k, :, :, 6 * i:6 * i + 6] += j_cam[k, :, :, :6]
+        jac[k, :, :, 6 * j:6 * j + 6] -= j_cam[k, :, :, :6]
+        jac[k, :, :, 6 * n] += j_cam[k, :, :, 6]
+        jac[k, torch.arange(p), :, n_cam + i * p + torch.arange(p)] += j_disp[k]
     keep = torch.cat([free, n_cam + torch.arange(n * p)])
-    jmat, w = jac.reshape(-1, n_cam + n * p)[:, keep], eq.weight.reshape(-1)
+    jmat, w = jac.reshape(-1, n_cam + n * p)[:, keep], weight.reshape(-1)
     h = jmat.T @ (w[:, None] * jmat)
-    g = -jmat.T @ (w * eq.residual.reshape(-1))
+    g = -jmat.T @ (w * residual.reshape(-1))
     dense = torch.linalg.solve(h + torch.diag(lm * torch.diagonal(h) + eps), g)
     got = torch.cat([torch.cat([step.poses.reshape(-1), step.focal[None]])[free], step.disparity.reshape(-1)])
     torch.testing.assert_close(got, dense, rtol=1e-6, atol=1e-9)

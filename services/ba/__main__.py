@@ -14,7 +14,7 @@ def _body(bus, stop) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return service_main("ba", _body)
+    return service_main("ba", _body, handles_tensors=True)
 
 
 if __name__ == "__main__":

@@ -24,6 +24,7 @@ def stop_on_signals(stop: threading.Event | None = None) -> threading.Event:
 
 M_TRIM_THRESHOLD = -1
 M_MMAP_THRESHOLD = -3
+M_MMAP_MAX = -4
 
 
 def tune_malloc_for_frames() -> None:
@@ -37,3 +38,18 @@ def tune_malloc_for_frames() -> None:
     if hasattr(libc, "mallopt"):  # glibc only
         libc.mallopt(M_MMAP_THRESHOLD, 32 << 20)
         libc.mallopt(M_TRIM_THRESHOLD, 128 << 20)
+
+
+def tune_malloc_for_tensors(keep_mib: int = 1024) -> None:
+    """glibc: never return large tensor buffers to the kernel between uses. Dense BA on the CPU allocates
+    tens of ~10-40 MB temporaries per iteration; fresh mmap pages cost a page fault per 4 KiB, which made an
+    elementwise product 6x slower than on reused memory and a BA iteration ~2x slower (docs/BENCHMARKS.md,
+    BA core). Disables mmap for allocations (the 32 MiB ceiling of M_MMAP_THRESHOLD is below one code
+    sample) and keeps up to ``keep_mib`` of freed heap. Called by a service's main or a bench, never at import."""
+    try:
+        libc = ctypes.CDLL(None)
+    except OSError:
+        return
+    if hasattr(libc, "mallopt"):  # glibc only
+        libc.mallopt(M_MMAP_MAX, 0)
+        libc.mallopt(M_TRIM_THRESHOLD, keep_mib << 20)

@@ -24,6 +24,7 @@ from typing import NamedTuple
 
 import torch
 
+from services.ba.core import ark as ark_codes
 from services.ba.core import embedding, projective, robust, schur, se3
 from services.ba.core.params import BAParams
 
@@ -60,13 +61,6 @@ class BAResult(NamedTuple):
     alpha: torch.Tensor  # (E, h, w) robust shape used in the last iteration
 
 
-class _Residuals(NamedTuple):
-    flow: torch.Tensor  # (E, P, 2)
-    flow_w: torch.Tensor  # (E, P) confidence * validity
-    embed: embedding.EmbeddingResidual | None
-    reproj: projective.Reprojection
-
-
 def _check(state: BAState, problem: BAProblem) -> None:
     n, h, w = state.disparity.shape
     e = problem.ii.shape[0]
@@ -79,52 +73,92 @@ def _check(state: BAState, problem: BAProblem) -> None:
         raise ValueError(f"codes must be ({n},{h},{w},K), got {tuple(problem.codes.shape)}")
 
 
-def _residuals(state: BAState, problem: BAProblem, params: BAParams, with_jac: bool) -> _Residuals:
+class _Prepared(NamedTuple):
+    """Observations in the solver's layout (pixels last) and compute dtype, formed once per call."""
+
+    ii: torch.Tensor  # (E,)
+    jj: torch.Tensor  # (E,)
+    targets: torch.Tensor  # (E, 2, P)
+    confidence: torch.Tensor  # (E, P)
+    pixels: torch.Tensor  # (P, 2)
+    codes: torch.Tensor | None  # (N, h, w, K) float32 or float64
+
+
+def _prepare(problem: BAProblem, params: BAParams, h: int, w: int) -> _Prepared:
+    dtype = getattr(torch, params.compute_dtype)
+    e, dev = len(problem.ii), problem.targets.device
+    targets = problem.targets.reshape(e, h * w, 2).transpose(1, 2).to(dtype).contiguous()
+    codes = problem.codes
+    if codes is not None and not (codes.dtype in (torch.float32, torch.float64)):
+        codes = codes.float()  # half precision arithmetic is slow or missing on CPUs
+    return _Prepared(problem.ii, problem.jj, targets, problem.confidence.reshape(e, -1).to(dtype),
+                     projective.pixel_grid(h, w, dtype, dev), codes)
+
+
+class _Residuals(NamedTuple):
+    flow: torch.Tensor  # (E, 2, P) target - reprojection
+    flow_norm: torch.Tensor  # (E, P)
+    flow_w: torch.Tensor  # (E, P) confidence * validity
+    embed: embedding.EmbeddingResidual | None  # fields (E, P); d_coords (E, P, 2)
+    reproj: projective.PlaneReprojection
+
+
+def _residuals(state: BAState, prep: _Prepared, params: BAParams, with_jac: bool) -> _Residuals:
     n, h, w = state.disparity.shape
-    pixels = projective.pixel_grid(h, w, state.poses.dtype, state.poses.device)
-    disp = state.disparity.reshape(n, -1)[problem.ii]
-    rp = projective.reproject(state.poses[problem.ii], state.poses[problem.jj], disp, pixels,
-                              state.intrinsics, with_jac)
-    flow = problem.targets.reshape(len(problem.ii), -1, 2).to(rp.coords.dtype) - rp.coords
-    flow_w = problem.confidence.reshape(len(problem.ii), -1).to(flow.dtype) * rp.valid
+    disp = state.disparity.reshape(n, -1)[prep.ii].to(prep.targets.dtype)
+    rp = projective.reproject_planes(state.poses[prep.ii], state.poses[prep.jj], disp, prep.pixels,
+                                     state.intrinsics, with_jac)
+    flow = prep.targets - rp.coords
+    flow_w = prep.confidence * rp.valid
     embed = None
-    # the cost (no Jacobians) needs codes only for the embedding term: ARK shapes are frozen per iteration
-    wanted = params.lambda_embed > 0 or (params.robust.use_ark and with_jac)
-    if problem.codes is not None and wanted:
-        codes = problem.codes if problem.codes.is_floating_point() else problem.codes.float()
-        if codes.dtype == torch.float16:  # half precision arithmetic is slow or missing on CPUs
-            codes = codes.float()
-        sample = embedding.bilinear_sample(codes, problem.jj, rp.coords,
+    # ARK alone samples codes through its lazy cache (_ark); the embedding term needs them at every evaluation
+    if prep.codes is not None and params.lambda_embed > 0:
+        sample = embedding.bilinear_sample(prep.codes, prep.jj, rp.coords.transpose(1, 2),
                                            derivatives=with_jac and params.lambda_embed > 0)
-        src = codes.reshape(n, h * w, -1)[problem.ii]
+        src = prep.codes.reshape(n, h * w, -1)[prep.ii]
         raw = embedding.embedding_residual(src, sample, params.embed_form)
-        d_coords = None if raw.d_coords is None else raw.d_coords.to(flow.dtype)
-        embed = embedding.EmbeddingResidual(raw.cosine.to(flow.dtype), raw.residual.to(flow.dtype), d_coords,
-                                            raw.valid)
-    return _Residuals(flow, flow_w, embed, rp)
+        embed = embedding.EmbeddingResidual(*(None if t is None or t.dtype == torch.bool else t.to(flow.dtype)
+                                              for t in raw[:3]), raw.valid)
+    # hypot, not vector_norm(dim=1): a reduction over a strided two-element axis is ~40x slower on CPU
+    return _Residuals(flow, torch.hypot(flow[:, 0], flow[:, 1]), flow_w, embed, rp)
 
 
 class _Frozen(NamedTuple):
     """IRLS quantities frozen within one iteration."""
 
     alpha: torch.Tensor  # (E, P) robust shape
+    kernel: robust.Kernel  # the Barron constants of alpha
     embed_weight: torch.Tensor  # (E, P) weight of the embedding residual (0 where unused)
 
 
-def _frozen(res: _Residuals, params: BAParams) -> _Frozen:
+def _ark(res: _Residuals, prep: _Prepared, params: BAParams,
+         cache: ark_codes.ArkCosine | None) -> ark_codes.ArkCosine | None:
+    """Code cosine at the current reprojections (None without ARK or codes): from the embedding residual when
+    that term is on (it is evaluated anyway), else from the lazily refreshed cache."""
+    if not params.robust.use_ark or prep.codes is None:
+        return None
+    coords = res.reproj.coords
+    if res.embed is not None:
+        return ark_codes.ArkCosine(res.embed.cosine, res.embed.valid, coords)
+    return ark_codes.refresh(cache, prep.codes, prep.ii, prep.jj, coords, res.reproj.valid,
+                             params.robust.ark_refresh_px)
+
+
+def _frozen(res: _Residuals, params: BAParams, ark: ark_codes.ArkCosine | None) -> _Frozen:
     rob = params.robust
-    if rob.use_ark and res.embed is not None:
-        alpha = robust.ark_alpha(res.embed.cosine, rob.alpha_static, rob.alpha_dynamic, rob.kappa, rob.tau)
+    if ark is not None:
+        alpha = robust.ark_alpha(ark.cosine, rob.alpha_static, rob.alpha_dynamic, rob.kappa, rob.tau)
     else:
         alpha = torch.full_like(res.flow_w, rob.fixed_alpha)
+    kern = robust.kernel(alpha, alpha.dtype, alpha.device)
     if res.embed is None or params.lambda_embed <= 0:
-        return _Frozen(alpha, torch.zeros_like(res.flow_w))
+        return _Frozen(alpha, kern, torch.zeros_like(res.flow_w))
     # The embedding term is trusted only where the pixel looks static: its flow IRLS weight times the ARK
     # probability of "same content" (the sigmoid of cs); otherwise a moving or occluded pixel's codes would
     # pull the geometry just as its flow does.
-    static = rob.scale**2 * robust.weight(res.flow.norm(dim=-1), alpha, rob.scale)
+    static = rob.scale**2 * robust.weight(res.flow_norm, kern, rob.scale)
     same = torch.sigmoid((res.embed.cosine - rob.kappa) / rob.tau)
-    return _Frozen(alpha, params.lambda_embed * res.flow_w * res.embed.valid * static * same)
+    return _Frozen(alpha, kern, params.lambda_embed * res.flow_w * res.embed.valid * static * same)
 
 
 def _prior_terms(state: BAState, problem: BAProblem, params: BAParams):
@@ -138,29 +172,34 @@ def _prior_terms(state: BAState, problem: BAProblem, params: BAParams):
     return h, -h * diff, float(0.5 * (h * diff**2).sum())
 
 
-def _cost(state: BAState, problem: BAProblem, params: BAParams, frozen: _Frozen) -> float:
-    res = _residuals(state, problem, params, with_jac=False)
+def _energy(res: _Residuals, params: BAParams, frozen: _Frozen) -> float:
+    """Flow and embedding energy of evaluated residuals (summed in float64: LM compares close values)."""
     c = params.robust.scale
-    total = params.lambda_photo * (res.flow_w * c**2 * robust.rho(res.flow.norm(dim=-1), frozen.alpha, c)).sum()
+    flow = res.flow_w * robust.rho(res.flow_norm, frozen.kernel, c)
+    total = params.lambda_photo * c**2 * flow.sum(dtype=torch.float64)
     if res.embed is not None and params.lambda_embed > 0:
-        total = total + 0.5 * (frozen.embed_weight * res.embed.residual**2).sum()
-    return float(total) + _prior_terms(state, problem, params)[2]
+        total = total + 0.5 * (frozen.embed_weight * res.embed.residual**2).sum(dtype=torch.float64)
+    return float(total)
+
+
+def _cost(state: BAState, prep: _Prepared, problem: BAProblem, params: BAParams, frozen: _Frozen) -> float:
+    res = _residuals(state, prep, params, with_jac=False)
+    return _energy(res, params, frozen) + _prior_terms(state, problem, params)[2]
 
 
 def _normal_equations(res: _Residuals, params: BAParams, frozen: _Frozen) -> schur.NormalEquations:
+    """Residuals ``reprojection - target`` (the flow residual's sign flipped, so its Jacobian is the
+    reprojection's own and needs no copy) and, with the embedding term, ``r_embed`` as a third component."""
     rp, c = res.reproj, params.robust.scale
-    irls = c**2 * robust.weight(res.flow.norm(dim=-1), frozen.alpha, c)
-    w_flow = (params.lambda_photo * res.flow_w * irls)[..., None].expand(-1, -1, 2)
-    # residual = target - coords, so its Jacobian is minus the reprojection Jacobian; only [xi_i, f] columns
-    # are formed because d/d xi_j = -d/d xi_i (see schur)
-    j_cam = -rp.j_pose_focal  # (E, P, 2, 7)
-    j_disp, resid, weight = -rp.j_disp, res.flow, w_flow
+    irls = c**2 * robust.weight(res.flow_norm, frozen.kernel, c)
+    w_flow = (params.lambda_photo * res.flow_w * irls)[:, None].expand(-1, 2, -1)
+    j_cam, j_disp, resid, weight = rp.jac, rp.j_disp, -res.flow, w_flow
     if res.embed is not None and params.lambda_embed > 0:
-        g = res.embed.d_coords[..., None, :]  # (E, P, 1, 2), chain rule through the reprojection
-        j_cam = torch.cat([j_cam, g @ -j_cam], 2)
-        j_disp = torch.cat([j_disp, (g @ -j_disp[..., None])[..., 0]], 2)
-        resid = torch.cat([resid, res.embed.residual[..., None]], 2)
-        weight = torch.cat([weight, frozen.embed_weight[..., None]], 2)
+        g = res.embed.d_coords.transpose(1, 2)  # (E, 2, P), chain rule through the reprojection
+        j_cam = torch.cat([j_cam, (g[:, None] * j_cam).sum(2, keepdim=True)], 2)
+        j_disp = torch.cat([j_disp, (g * rp.j_disp).sum(1, keepdim=True)], 1)
+        resid = torch.cat([resid, res.embed.residual[:, None]], 1)
+        weight = torch.cat([weight, frozen.embed_weight[:, None]], 1)
     return schur.NormalEquations(j_cam, j_disp, resid, weight)
 
 
@@ -201,24 +240,28 @@ def run_ba(state: BAState, problem: BAProblem, params: BAParams) -> BAResult:
     # no anchor when cameras 0 and 1 coincide (e.g. at initialisation): the damping alone holds the scale
     scale_anchor = params.fix_scale and not has_prior and params.fixed_poses == 1 and distance > 1e-9
     lm = params.lm_init
-    res = _residuals(state, problem, params, with_jac=True)
-    frozen = _frozen(res, params)
-    costs = [_cost(state, problem, params, frozen)]
+    prep = _prepare(problem, params, h, w)
+    res = _residuals(state, prep, params, with_jac=True)
+    ark = _ark(res, prep, params, None)
+    frozen = _frozen(res, params, ark)
+    prior_cost = _prior_terms(state, problem, params)[2]
+    costs = [_energy(res, params, frozen) + prior_cost]
     for it in range(params.iterations):
         prior_h, prior_g, _ = _prior_terms(state, problem, params)
-        step = schur.solve(_normal_equations(res, params, frozen), problem.ii, problem.jj, n, free, lm,
+        step = schur.solve(_normal_equations(res, params, frozen), prep.ii, prep.jj, n, free, lm,
                            params.pose_eps, params.disp_eps, prior_h, prior_g)
         trial = _apply(state, step, params)
         if scale_anchor:
             trial = _rescale(trial, 0, 1, distance)
-        trial_cost = _cost(trial, problem, params, frozen)
+        trial_cost = _cost(trial, prep, problem, params, frozen)
         logger.debug("BA iter %d cost %.6g -> %.6g (lm %.1e)", it, costs[-1], trial_cost, lm)
         if trial_cost < costs[-1]:
             state, lm = trial, lm * params.lm_down
-            res = _residuals(state, problem, params, with_jac=True)
-            frozen = _frozen(res, params)
+            res = _residuals(state, prep, params, with_jac=True)
+            ark = _ark(res, prep, params, ark)
+            frozen = _frozen(res, params, ark)
             decrease = costs[-1] - trial_cost
-            costs.append(_cost(state, problem, params, frozen))
+            costs.append(_energy(res, params, frozen) + _prior_terms(state, problem, params)[2])
             if decrease <= params.rel_tol * costs[0]:
                 break
         else:
@@ -226,17 +269,18 @@ def run_ba(state: BAState, problem: BAProblem, params: BAParams) -> BAResult:
             if lm > params.lm_max:
                 break
     edge_w = _edge_weight(res, frozen, params)
-    static = _static_weight(res, problem, params, n).view(n, h, w)
+    static = _static_weight(res, ark, problem, params, n).view(n, h, w)
     return BAResult(state, costs, edge_w.view(-1, h, w), static, frozen.alpha.view(-1, h, w))
 
 
 def _edge_weight(res: _Residuals, frozen: _Frozen, params: BAParams) -> torch.Tensor:
     """(E, P) robust IRLS weight c^2 psi(r)/r in [0, 1] of the kernel in use; 0 where the edge is unused."""
     c = params.robust.scale
-    return c**2 * robust.weight(res.flow.norm(dim=-1), frozen.alpha, c) * (res.flow_w > 0).to(res.flow.dtype)
+    return c**2 * robust.weight(res.flow_norm, frozen.kernel, c) * (res.flow_w > 0).to(res.flow.dtype)
 
 
-def _static_weight(res: _Residuals, problem: BAProblem, params: BAParams, n: int) -> torch.Tensor:
+def _static_weight(res: _Residuals, ark: ark_codes.ArkCosine | None, problem: BAProblem, params: BAParams,
+                   n: int) -> torch.Tensor:
     """(N, P) probability that each keyframe pixel is static, from the evidence of all its out-edges.
 
     With codes (ARK): the ARK sigmoid of the confidence-weighted mean cosine similarity over the edges,
@@ -248,12 +292,12 @@ def _static_weight(res: _Residuals, problem: BAProblem, params: BAParams, n: int
     """
     rob = params.robust
     votes = res.flow_w
-    with_codes = rob.use_ark and res.embed is not None
+    with_codes = ark is not None
     if with_codes:
-        votes = votes * res.embed.valid
-        flow_w = rob.scale**2 * robust.weight(res.flow.norm(dim=-1), rob.alpha_dynamic, rob.scale)
+        votes = votes * ark.valid
+        flow_w = rob.scale**2 * robust.weight(res.flow_norm, rob.alpha_dynamic, rob.scale)
     else:
-        flow_w = rob.scale**2 * robust.weight(res.flow.norm(dim=-1), rob.fixed_alpha, rob.scale)
+        flow_w = rob.scale**2 * robust.weight(res.flow_norm, rob.fixed_alpha, rob.scale)
     p = votes.shape[1]
     total = torch.zeros(n, p, dtype=votes.dtype, device=votes.device).index_add_(0, problem.ii, votes)
     seen = total > 0
@@ -264,5 +308,5 @@ def _static_weight(res: _Residuals, problem: BAProblem, params: BAParams, n: int
 
     static = mean(flow_w)
     if with_codes:
-        static = static * torch.sigmoid((mean(res.embed.cosine) - rob.kappa) / rob.tau)
+        static = static * torch.sigmoid((mean(ark.cosine) - rob.kappa) / rob.tau)
     return torch.where(seen, static, torch.ones_like(static))

@@ -15,6 +15,8 @@ class RobustParams:
     kappa: float = 0.5  # cosine similarity at the ARK sigmoid midpoint
     tau: float = 0.05  # ARK sigmoid temperature (cosine units)
     scale: float = 0.5  # Barron scale c, in grid pixels (1/8 of working-resolution pixels)
+    ark_refresh_px: float = 0.25  # re-sample an edge's codes for ARK once a reprojection moved this far (grid
+    # px) since its last sample; 0 = every iteration (services.ba.core.ark)
 
 
 @dataclass(frozen=True)
@@ -37,11 +39,15 @@ class BAParams:
     pose_eps: float = 1e-9  # absolute damping on pose/focal diagonal (keeps S positive definite)
     disp_eps: float = 1e-6  # absolute damping on disparity diagonal (pixels seen by no edge)
     min_disparity: float = 1e-4  # disparities are clamped to at least this after each update
+    compute_dtype: str = "float32"  # per-pixel residuals and Jacobians: "float32" (fast) or "float64" (exact
+    # to 1e-12, for tests); poses, the camera system and its Cholesky solve are float64 either way
     robust: RobustParams = field(default_factory=RobustParams)
 
     def __post_init__(self) -> None:
         if self.fixed_poses < 1:
             raise ValueError(f"fixed_poses must be >= 1 (gauge), got {self.fixed_poses}")
+        if self.compute_dtype not in ("float32", "float64"):
+            raise ValueError(f"compute_dtype must be 'float32' or 'float64', got {self.compute_dtype!r}")
         if self.embed_form not in ("angular", "chordal"):
             raise ValueError(f"embed_form must be 'angular' or 'chordal', got {self.embed_form!r}")
 

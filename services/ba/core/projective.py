@@ -92,46 +92,75 @@ def reproject(world_from_cam_i: torch.Tensor, world_from_cam_j: torch.Tensor, di
     Args:
         world_from_cam_i: ``(E, 4, 4)`` source poses.
         world_from_cam_j: ``(E, 4, 4)`` target poses.
-        disparity: ``(E, P)`` source disparities (inverse depth).
-        pixels: ``(P, 2)`` or ``(E, P, 2)`` source pixel coordinates ``(x, y)``.
+        disparity: ``(E, P)`` source disparities (inverse depth); the per-pixel work runs in its dtype.
+        pixels: ``(P, 2)`` source pixel coordinates ``(x, y)``.
         intrinsics: ``(4,)`` ``(fx, fy, cx, cy)``; the focal Jacobian assumes ``fx = fy = f``.
         with_jacobians: also return the analytic Jacobians.
     Returns:
-        :class:`Reprojection` (Jacobian fields ``None`` when ``with_jacobians`` is false).
+        :class:`Reprojection` (Jacobian fields ``None`` when ``with_jacobians`` is false); the tensors are
+        views of the channels-first :class:`PlaneReprojection` of :func:`reproject_planes`.
     """
+    out = reproject_planes(world_from_cam_i, world_from_cam_j, disparity, pixels, intrinsics, with_jacobians)
+    if not with_jacobians:
+        return Reprojection(out.coords.transpose(1, 2), out.valid, None, None)
+    return Reprojection(out.coords.transpose(1, 2), out.valid, out.jac.permute(0, 3, 2, 1),
+                        out.j_disp.transpose(1, 2))
+
+
+class PlaneReprojection(NamedTuple):
+    """:class:`Reprojection` with the pixel index last (``P`` contiguous): the layout dense BA works in."""
+
+    coords: torch.Tensor  # (E, 2, P) pixel (x, y) in keyframe j
+    valid: torch.Tensor  # (E, P) bool: in front of camera j
+    jac: torch.Tensor | None  # (E, 7, 2, P) d coords / d [xi_i, f]; d / d xi_j is minus the first 6 rows
+    j_disp: torch.Tensor | None  # (E, 2, P) d coords / d disparity of the source pixel
+
+
+def reproject_planes(world_from_cam_i: torch.Tensor, world_from_cam_j: torch.Tensor, disparity: torch.Tensor,
+                     pixels: torch.Tensor, intrinsics: torch.Tensor,
+                     with_jacobians: bool = True) -> PlaneReprojection:
+    """:func:`reproject` in the channels-first layout; per-edge rigid motions are formed in the pose dtype,
+    per-pixel arithmetic runs in ``disparity.dtype`` (float32 halves the memory traffic of dense BA)."""
     n_edges, n_pix = disparity.shape
     if world_from_cam_i.shape != (n_edges, 4, 4) or world_from_cam_j.shape != (n_edges, 4, 4):
         raise ValueError(f"poses must be ({n_edges}, 4, 4), got {world_from_cam_i.shape}, {world_from_cam_j.shape}")
-    if pixels.shape[-2:] != (n_pix, 2):
-        raise ValueError(f"pixels must be (..., {n_pix}, 2), got {tuple(pixels.shape)}")
-    x_i = unproject(pixels, disparity, intrinsics)  # (E, P, 4)
-    q, d = x_i[..., :3], x_i[..., 3]
-    rot_i, t_i = world_from_cam_i[:, :3, :3], world_from_cam_i[:, None, :3, 3]
-    rot_j, t_j = world_from_cam_j[:, :3, :3], world_from_cam_j[:, None, :3, 3]
-    # row-vector form (points @ R^T) keeps every product a batched (P x 3) @ (3 x 3) matmul per edge
-    p_w = q @ rot_i.transpose(-1, -2) + t_i * d[..., None]  # (E, P, 3) world point, scaled by d
-    x_j = (p_w - t_j * d[..., None]) @ rot_j  # (E, P, 3) camera-j point, scaled by d
-    z = x_j[..., 2]
-    valid = z > MIN_DEPTH * d
-    z_safe = torch.where(z.abs() < 1e-12, torch.full_like(z, 1e-12), z)
-    fx, fy, cx, cy = intrinsics.unbind(-1)
-    inv_z = 1 / z_safe
-    u_n, v_n = x_j[..., 0] * inv_z, x_j[..., 1] * inv_z
-    coords = torch.stack([fx * u_n + cx, fy * v_n + cy], -1)
+    if pixels.shape != (n_pix, 2):
+        raise ValueError(f"pixels must be ({n_pix}, 2), got {tuple(pixels.shape)}")
+    dtype = disparity.dtype
+    rot_i, rot_j = world_from_cam_i[:, :3, :3], world_from_cam_j[:, :3, :3]
+    baseline = world_from_cam_i[:, :3, 3] - world_from_cam_j[:, :3, 3]  # (E, 3) world frame
+    rot_ji = (rot_j.transpose(1, 2) @ rot_i).to(dtype)  # camera i -> camera j
+    t_ji = (rot_j.transpose(1, 2) @ baseline[..., None]).to(dtype)  # (E, 3, 1)
+    intr = intrinsics.to(dtype)
+    fx, fy, cx, cy = intr.unbind(-1)
+    pix = pixels.to(dtype)
+    q = torch.stack([(pix[:, 0] - cx) / fx, (pix[:, 1] - cy) / fy, torch.ones_like(pix[:, 0])])  # (3, P)
+    d = disparity[:, None, :]  # (E, 1, P)
+    rq = rot_ji @ q  # (E, 3, P)
+    x_j = rq + t_ji * d  # camera-j point scaled by d
+    z = x_j[:, 2]
+    valid = z > MIN_DEPTH * disparity
+    inv_z = 1 / torch.where(z.abs() < 1e-12, torch.full_like(z, 1e-12), z)
+    u_n, v_n = x_j[:, 0] * inv_z, x_j[:, 1] * inv_z
+    coords = torch.stack([fx * u_n + cx, fy * v_n + cy], 1)
     if not with_jacobians:
-        return Reprojection(coords, valid, None, None)
+        return PlaneReprojection(coords, valid, None, None)
 
-    zeros = torch.zeros_like(z)
-    d_proj = torch.stack([fx * inv_z, zeros, -fx * u_n * inv_z,
-                          zeros, fy * inv_z, -fy * v_n * inv_z], -1).reshape(n_edges, n_pix, 2, 3)
-    # a = d_proj @ R_j^T: derivative of the pixel w.r.t. the (scaled) world point
-    a = (d_proj.reshape(n_edges, 2 * n_pix, 3) @ rot_j.transpose(-1, -2)).reshape(n_edges, n_pix, 2, 3)
-    # left tangent of T_i moves the world point by [d I, -[p_w]x] xi, and a^T [p]x = (a x p)^T
-    jac = torch.empty(n_edges, n_pix, 2, 7, dtype=a.dtype, device=a.device)
-    torch.mul(a, d[..., None, None], out=jac[..., :3])
-    jac[..., 3:6] = torch.linalg.cross(p_w[..., None, :].expand_as(a), a, dim=-1)
-    j_disp = (a * (t_i - t_j)[:, :, None, :]).sum(-1)
-    dq_df = torch.stack([-q[..., 0] / fx, -q[..., 1] / fy, zeros], -1)  # (E, P, 3), fx = fy = f
-    dxj_df = dq_df @ (rot_j.transpose(-1, -2) @ rot_i).transpose(-1, -2)
-    jac[..., 6] = (d_proj * dxj_df[..., None, :]).sum(-1) + torch.stack([u_n, v_n], -1)
-    return Reprojection(coords, valid, jac, j_disp)
+    # a_r = (row r of d pi / d x_j) R_j^T: derivative of pixel coordinate r w.r.t. the (scaled) world point
+    cols = rot_j.to(dtype)[..., None]  # (E, 3, 3, 1): cols[:, :, k] is column k of R_j
+    gx, gy = (fx * inv_z)[:, None], (fy * inv_z)[:, None]  # (E, 1, P)
+    a = torch.stack([gx * (cols[:, :, 0] - u_n[:, None] * cols[:, :, 2]),
+                     gy * (cols[:, :, 1] - v_n[:, None] * cols[:, :, 2])], 2)  # (E, 3, 2, P)
+    p_w = (rot_i.to(dtype) @ q + world_from_cam_i[:, :3, 3, None].to(dtype) * d)[:, :, None]  # (E, 3, 1, P)
+    jac = torch.empty(n_edges, 7, 2, n_pix, dtype=dtype, device=disparity.device)
+    # the left tangent of T_i moves the world point by [d I, -[p_w]x] xi; a^T (-[p_w]x) is the row (p_w x a)^T
+    torch.mul(a, d[:, :, None], out=jac[:, :3])
+    jac[:, 3] = p_w[:, 1] * a[:, 2] - p_w[:, 2] * a[:, 1]
+    jac[:, 4] = p_w[:, 2] * a[:, 0] - p_w[:, 0] * a[:, 2]
+    jac[:, 5] = p_w[:, 0] * a[:, 1] - p_w[:, 1] * a[:, 0]
+    j_disp = (a * baseline.to(dtype)[:, :, None, None]).sum(1)  # (E, 2, P)
+    # f enters through q = ((x - cx)/f, (y - cy)/f, 1): d x_j / d f = -(R_ji q - R_ji e_z) / f
+    dx_df = (rot_ji[:, :, 2:3] - rq) / fx  # (E, 3, P)
+    jac[:, 6, 0] = u_n + gx[:, 0] * (dx_df[:, 0] - u_n * dx_df[:, 2])
+    jac[:, 6, 1] = v_n + gy[:, 0] * (dx_df[:, 1] - v_n * dx_df[:, 2])
+    return PlaneReprojection(coords, valid, jac, j_disp)

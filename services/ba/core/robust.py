@@ -17,6 +17,7 @@ All functions are element-wise and broadcast ``x``, ``alpha``, ``c`` (any shape,
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import torch
 
@@ -25,37 +26,70 @@ import torch
 EPS = 1e-9
 
 
-def _parts(x: torch.Tensor, alpha: torch.Tensor, scale: torch.Tensor):
-    x, alpha, scale = torch.broadcast_tensors(torch.as_tensor(x), torch.as_tensor(alpha, dtype=x.dtype),
-                                              torch.as_tensor(scale, dtype=x.dtype))
-    z = (x / scale) ** 2
-    b_safe = (alpha - 2).abs().clamp_min(EPS)
-    sign = torch.where(alpha >= 0, torch.ones_like(alpha), -torch.ones_like(alpha))
-    a_safe = sign * alpha.abs().clamp_min(EPS)
+class Kernel(NamedTuple):
+    """Constants of ``rho``/``weight`` for one shape map ``alpha``, formed once and reused: IRLS evaluates the
+    same frozen shapes many times per iteration, and forming them costs more than the evaluation itself."""
+
+    inv_b: torch.Tensor  # 1 / b, b = |alpha - 2| kept >= EPS
+    coef: torch.Tensor  # b / alpha (alpha kept >= EPS away from 0)
+    half_a: torch.Tensor  # alpha / 2
+    w_exp: torch.Tensor  # alpha / 2 - 1
+    l2: torch.Tensor | None  # bool where alpha == 2 exactly (None: nowhere)
+    cauchy: torch.Tensor | None  # bool where alpha == 0 exactly
+    welsch: torch.Tensor | None  # bool where alpha is -inf
+
+
+def kernel(alpha, dtype: torch.dtype = torch.float64, device=None) -> Kernel:
+    """:class:`Kernel` of ``alpha`` (a number or a tensor of any shape)."""
+    alpha = torch.as_tensor(alpha, dtype=dtype, device=device)
     finite = torch.isfinite(alpha)
-    # Very negative finite alpha: b -> inf and log1p(z/b) -> z/b, fine; -inf handled by the Welsch branch.
-    a_fin = torch.where(finite, a_safe, -torch.ones_like(alpha))
-    b_fin = torch.where(finite, b_safe, 3 * torch.ones_like(alpha))
-    return x, alpha, scale, z, a_fin, b_fin, finite
+    b = (alpha - 2).abs().clamp_min(EPS)
+    sign = torch.where(alpha >= 0, torch.ones_like(alpha), -torch.ones_like(alpha))
+    # very negative finite alpha: b -> inf and log1p(z/b) -> z/b, fine; -inf is the Welsch branch
+    a = torch.where(finite, sign * alpha.abs().clamp_min(EPS), -torch.ones_like(alpha))
+    b = torch.where(finite, b, 3 * torch.ones_like(alpha))
+
+    def where(mask: torch.Tensor) -> torch.Tensor | None:
+        return mask if bool(mask.any()) else None
+
+    return Kernel(1 / b, b / a, 0.5 * a, 0.5 * a - 1, where(alpha == 2), where(alpha == 0), where(~finite))
+
+
+def _as_kernel(alpha, x: torch.Tensor) -> Kernel:
+    return alpha if isinstance(alpha, Kernel) else kernel(alpha, x.dtype, x.device)
 
 
 def rho(x: torch.Tensor, alpha, scale) -> torch.Tensor:
-    """Barron loss ``rho(x, alpha, c)`` (dimensionless, ``rho(0) = 0``, ``rho ~ x^2 / (2 c^2)`` near 0)."""
-    x, alpha, scale, z, a, b, finite = _parts(x, alpha, scale)
-    general = b / a * torch.expm1(0.5 * a * torch.log1p(z / b))
-    out = torch.where(alpha == 2, 0.5 * z, general)
-    out = torch.where(alpha == 0, torch.log1p(0.5 * z), out)
-    return torch.where(finite, out, -torch.expm1(-0.5 * z))
+    """Barron loss ``rho(x, alpha, c)`` (dimensionless, ``rho(0) = 0``, ``rho ~ x^2 / (2 c^2)`` near 0);
+    ``alpha`` is a number, a tensor or a :class:`Kernel`."""
+    x = torch.as_tensor(x)
+    k = _as_kernel(alpha, x)
+    z = (x / scale) ** 2
+    out = k.coef * torch.expm1(k.half_a * torch.log1p(z * k.inv_b))
+    if k.l2 is not None:
+        out = torch.where(k.l2, 0.5 * z, out)
+    if k.cauchy is not None:
+        out = torch.where(k.cauchy, torch.log1p(0.5 * z), out)
+    if k.welsch is not None:
+        out = torch.where(k.welsch, -torch.expm1(-0.5 * z), out)
+    return out
 
 
 def weight(x: torch.Tensor, alpha, scale) -> torch.Tensor:
-    """IRLS weight ``psi(x)/x`` (units 1/c^2; ``1/c^2`` at ``x = 0``); finite at ``x = 0``."""
-    x, alpha, scale, z, a, b, finite = _parts(x, alpha, scale)
-    inv_c2 = 1 / scale**2
-    general = inv_c2 * torch.exp((0.5 * a - 1) * torch.log1p(z / b))
-    out = torch.where(alpha == 2, inv_c2.expand_as(z), general)
-    out = torch.where(alpha == 0, inv_c2 / (0.5 * z + 1), out)
-    return torch.where(finite, out, inv_c2 * torch.exp(-0.5 * z))
+    """IRLS weight ``psi(x)/x`` (units 1/c^2; ``1/c^2`` at ``x = 0``); finite at ``x = 0``; ``alpha`` is a
+    number, a tensor or a :class:`Kernel`."""
+    x = torch.as_tensor(x)
+    k = _as_kernel(alpha, x)
+    z = (x / scale) ** 2
+    inv_c2 = 1 / torch.as_tensor(scale, dtype=x.dtype, device=x.device) ** 2
+    out = inv_c2 * torch.exp(k.w_exp * torch.log1p(z * k.inv_b))
+    if k.l2 is not None:
+        out = torch.where(k.l2, inv_c2.expand_as(out), out)
+    if k.cauchy is not None:
+        out = torch.where(k.cauchy, inv_c2 / (0.5 * z + 1), out)
+    if k.welsch is not None:
+        out = torch.where(k.welsch, inv_c2 * torch.exp(-0.5 * z), out)
+    return out
 
 
 def psi(x: torch.Tensor, alpha, scale) -> torch.Tensor:

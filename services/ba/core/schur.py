@@ -23,12 +23,14 @@ _JITTER = 1e-9
 
 
 class NormalEquations(NamedTuple):
-    """Per-edge Jacobians and weighted residuals, flattened over residual components."""
+    """Per-edge Jacobians and weighted residuals, pixels last (``P`` contiguous), ``R`` residual components.
 
-    j_cam: torch.Tensor  # (E, P, R, 7) d residual / d [xi_i, f]; d residual / d xi_j = -d residual / d xi_i
-    j_disp: torch.Tensor  # (E, P, R) d residual / d source disparity
-    residual: torch.Tensor  # (E, P, R)
-    weight: torch.Tensor  # (E, P, R) (0 = unused)
+    The per-pixel tensors may be float32 (the solver's reductions to the camera system run in float64)."""
+
+    j_cam: torch.Tensor  # (E, 7, R, P) d residual / d [xi_i, f]; d residual / d xi_j = -d residual / d xi_i
+    j_disp: torch.Tensor  # (E, R, P) d residual / d source disparity
+    residual: torch.Tensor  # (E, R, P)
+    weight: torch.Tensor  # (E, R, P) (0 = unused)
 
 
 class Step(NamedTuple):
@@ -71,19 +73,19 @@ def solve(eq: NormalEquations, ii: torch.Tensor, jj: torch.Tensor, n_kf: int, fr
         pose_eps, disp_eps: absolute diagonal damping of camera / disparity variables.
         prior_h, prior_g: ``(N, P)`` extra disparity diagonal and gradient (disparity prior; zeros if none).
     """
-    n_edges, n_pix = eq.j_disp.shape[:2]
-    dtype, dev = eq.j_disp.dtype, eq.j_disp.device
+    n_edges, n_res, n_pix = eq.j_disp.shape
+    dtype, dev = prior_h.dtype, eq.j_disp.device  # camera system and step dtype (float64 in BA)
     n_cam = 6 * n_kf + 1
     n_ext = n_cam + 1  # one dummy column for padded slots
-    n_res = eq.residual.shape[2]
     wr = eq.weight * eq.residual
     wd = eq.weight * eq.j_disp
-    flat_j = eq.j_cam.reshape(n_edges, n_pix * n_res, 7)
+    flat_j = eq.j_cam.reshape(n_edges, 7, n_res * n_pix)
     expand = _expansion(dtype, dev)  # (13, 7): [xi_i, xi_j, f] from [xi_i, f]
-    h_cc = expand @ (flat_j.transpose(1, 2) @ (flat_j * eq.weight.reshape(n_edges, -1, 1))) @ expand.T
-    g_c = -(flat_j.transpose(1, 2) @ wr.reshape(n_edges, -1, 1))[..., 0] @ expand.T
+    h_77 = torch.bmm(flat_j * eq.weight.reshape(n_edges, 1, -1), flat_j.transpose(1, 2)).to(dtype)
+    h_cc = expand @ h_77 @ expand.T
+    g_c = -torch.bmm(flat_j, wr.reshape(n_edges, -1, 1))[..., 0].to(dtype) @ expand.T
     # sum over the few residual components explicitly: a batched matmul of P*E tiny matrices is far slower
-    h_cd7 = sum(eq.j_cam[:, :, r] * wd[:, :, r, None] for r in range(n_res))  # (E, P, 7) = [xi_i, f]
+    h_cd7 = sum(eq.j_cam[:, :, r] * wd[:, None, r] for r in range(n_res))  # (E, 7, P) = [xi_i, f]
     ar6 = torch.arange(6, device=dev)
     cols = torch.cat([6 * ii[:, None] + ar6, 6 * jj[:, None] + ar6,
                       torch.full((n_edges, 1), 6 * n_kf, device=dev)], 1)  # (E, 13)
@@ -92,19 +94,19 @@ def solve(eq: NormalEquations, ii: torch.Tensor, jj: torch.Tensor, n_kf: int, fr
     big_h.index_add_(0, (cols[:, :, None] * n_ext + cols[:, None, :]).reshape(-1), h_cc.reshape(-1))
     big_h = big_h.view(n_ext, n_ext)
     big_g = torch.zeros(n_ext, dtype=dtype, device=dev).index_add_(0, cols.reshape(-1), g_c.reshape(-1))
-    h_dd = torch.zeros(n_kf, n_pix, dtype=dtype, device=dev).index_add_(
-        0, ii, (wd * eq.j_disp).sum(-1)) + prior_h
-    g_d = torch.zeros(n_kf, n_pix, dtype=dtype, device=dev).index_add_(
-        0, ii, -(wr * eq.j_disp).sum(-1)) + prior_g
+    pix_dtype = eq.j_disp.dtype
+    h_dd = torch.zeros(n_kf, n_pix, dtype=pix_dtype, device=dev).index_add_(
+        0, ii, (wd * eq.j_disp).sum(1)) + prior_h.to(pix_dtype)
+    g_d = torch.zeros(n_kf, n_pix, dtype=pix_dtype, device=dev).index_add_(
+        0, ii, -(wr * eq.j_disp).sum(1)) + prior_g.to(pix_dtype)
 
     # compact camera-disparity coupling per source keyframe
     slot, max_deg = _edge_slots(ii, n_kf)
     width = 7 + 6 * max_deg
-    own = h_cd7.transpose(1, 2).contiguous()  # (E, 7, P)
-    coupling = torch.cat([torch.zeros(n_kf, 7, n_pix, dtype=dtype, device=dev).index_add_(0, ii, own),
-                          torch.zeros(n_kf, width - 7, n_pix, dtype=dtype, device=dev)], 1)
+    coupling = torch.zeros(n_kf, width, n_pix, dtype=pix_dtype, device=dev)
+    coupling[:, :7].index_add_(0, ii, h_cd7)
     pose_j_rows = 7 + 6 * slot[:, None] + ar6  # (E, 6)
-    coupling[ii[:, None], pose_j_rows] = -own[:, :6]
+    coupling[ii[:, None], pose_j_rows] = -h_cd7[:, :6]
     colmap = torch.full((n_kf, width), n_cam, dtype=torch.long, device=dev)
     colmap[:, :6] = 6 * torch.arange(n_kf, device=dev)[:, None] + ar6
     colmap[:, 6] = 6 * n_kf
@@ -115,10 +117,10 @@ def solve(eq: NormalEquations, ii: torch.Tensor, jj: torch.Tensor, n_kf: int, fr
     big_h = big_h + torch.diag(lm * diag + pose_eps)
     inv_dd = 1 / (h_dd * (1 + lm) + disp_eps)
     scaled = coupling * inv_dd[:, None, :]
-    blocks = torch.bmm(scaled, coupling.transpose(1, 2))  # (N, D, D)
+    blocks = torch.bmm(scaled, coupling.transpose(1, 2)).to(dtype)  # (N, D, D)
     schur = big_h.reshape(-1).index_add(0, (colmap[:, :, None] * n_ext + colmap[:, None, :]).reshape(-1),
                                         -blocks.reshape(-1)).view(n_ext, n_ext)
-    rhs = big_g.index_add(0, colmap.reshape(-1), -torch.bmm(scaled, g_d[:, :, None]).reshape(-1))
+    rhs = big_g.index_add(0, colmap.reshape(-1), -torch.bmm(scaled, g_d[:, :, None]).to(dtype).reshape(-1))
 
     s_ff = schur[free_cam][:, free_cam]
     chol, info = torch.linalg.cholesky_ex(s_ff)
@@ -131,5 +133,5 @@ def solve(eq: NormalEquations, ii: torch.Tensor, jj: torch.Tensor, n_kf: int, fr
         delta_free = torch.linalg.pinv(s_ff) @ rhs[free_cam]
     delta_cam = torch.zeros(n_ext, dtype=dtype, device=dev)
     delta_cam[free_cam] = delta_free
-    delta_d = inv_dd * (g_d - (coupling * delta_cam[colmap][:, :, None]).sum(1))
-    return Step(delta_cam[: 6 * n_kf].view(n_kf, 6), delta_cam[6 * n_kf], delta_d)
+    delta_d = inv_dd * (g_d - torch.bmm(delta_cam[colmap].to(pix_dtype)[:, None], coupling)[:, 0])
+    return Step(delta_cam[: 6 * n_kf].view(n_kf, 6), delta_cam[6 * n_kf], delta_d.to(dtype))

@@ -1,0 +1,59 @@
+"""Code similarity behind the ARK kernel: cosine of a pixel's code and the code map of the other view at its
+reprojection, re-sampled lazily per edge.
+
+ARK shapes are frozen within a Levenberg-Marquardt iteration (IRLS). Sampling the ``(E, P, K)`` codes is the
+most expensive step of an iteration on a CPU, yet once the window is near its optimum an update moves most
+reprojections by a small fraction of a grid cell, and the bilinearly interpolated codes -- hence the cosine --
+barely change. So an edge is re-sampled only once some reprojection of it has moved more than
+``refresh_px`` since its last sample; ``refresh_px = 0`` re-samples every edge at every linearisation.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+
+from services.ba.core import embedding
+
+
+class ArkCosine(NamedTuple):
+    """Per edge ``e`` and source pixel ``p``."""
+
+    cosine: torch.Tensor  # (E, P) in [-1, 1]: cosine of the source code and the target map at ``coords``
+    valid: torch.Tensor  # (E, P) bool: ``coords`` fell inside the target code map
+    coords: torch.Tensor  # (E, 2, P) the reprojections at which the codes were sampled (grid px)
+
+
+def sample(codes: torch.Tensor, ii: torch.Tensor, jj: torch.Tensor, coords: torch.Tensor) -> ArkCosine:
+    """Cosine similarity for every edge.
+
+    Args:
+        codes: ``(N, h, w, K)`` float code maps.
+        ii, jj: ``(E,)`` long source / target keyframe of each edge.
+        coords: ``(E, 2, P)`` reprojections of the source grid pixels into the target (grid px).
+    """
+    n, h, w, k = codes.shape
+    if coords.shape[1:] != (2, h * w) or ii.shape != jj.shape or coords.shape[0] != ii.shape[0]:
+        raise ValueError(f"coords (E, 2, {h * w}) and ii, jj (E,) expected, got {tuple(coords.shape)}, "
+                         f"{tuple(ii.shape)}, {tuple(jj.shape)}")
+    values = embedding.bilinear_sample(codes, jj, coords.transpose(1, 2), derivatives=False)
+    src = codes.reshape(n, h * w, k)[ii]
+    res = embedding.embedding_residual(src, values)
+    return ArkCosine(res.cosine.to(coords.dtype), res.valid, coords.clone())
+
+
+def refresh(cache: ArkCosine | None, codes: torch.Tensor, ii: torch.Tensor, jj: torch.Tensor,
+            coords: torch.Tensor, valid: torch.Tensor, refresh_px: float) -> ArkCosine:
+    """``cache`` brought up to date with reprojections ``coords`` ``(E, 2, P)``: edges where a pixel in front
+    of the target camera (``valid`` ``(E, P)``) moved more than ``refresh_px`` since the cache's sample are
+    re-sampled; the others keep their cosine. ``cache`` None (or a different edge count) samples every edge."""
+    if cache is None or cache.cosine.shape[0] != ii.shape[0] or refresh_px <= 0:
+        return sample(codes, ii, jj, coords)
+    moved = torch.nan_to_num((coords - cache.coords).abs().amax(1), nan=float("inf"))
+    stale = torch.nonzero(torch.where(valid, moved, torch.zeros_like(moved)).amax(1) > refresh_px)[:, 0]
+    if stale.numel() == 0:
+        return cache
+    fresh = sample(codes, ii[stale], jj[stale], coords[stale])
+    cosine, inside, at = cache.cosine.clone(), cache.valid.clone(), cache.coords.clone()
+    cosine[stale], inside[stale], at[stale] = fresh.cosine, fresh.valid, fresh.coords
+    return ArkCosine(cosine, inside, at)
