@@ -3,6 +3,12 @@
 
 At the features stage's end of stream the frontend runs its global BA and the final ``graph`` and ``pose``
 (``final=True``) go out before this stage's own ``eos``.
+
+PCA versions: BA compares codes of different keyframes (ARK's cosine similarity, the embedding residual), so
+every code in the graph is in one version, ``BaState.pca_version`` — the newest basis seen (or, before any, the
+version of the first keyframe's codes). Keyframes are converted on arrival; a newer basis converts the whole
+graph from the codes each keyframe arrived with (services/common/pca_codes.py). Codes whose basis is unknown
+are left out (None) with a warning: windows holding such a keyframe run without codes until the basis comes.
 """
 from __future__ import annotations
 
@@ -17,8 +23,10 @@ import torch
 
 from services.common import keys
 from services.common.bus import Bus
+from services.common.pca_codes import code_map, convert_codes
 from services.common.schema import Eos, FrameLite, Graph, Intrinsics, Keyframe, Message, PcaBasis, Poses
 from services.ba.frontend.frontend import FrameInput, Frontend, KeyframeInput, Update
+from services.ba.frontend.graph import NativeCodes
 from services.ba.settings import BaSettings
 
 log = logging.getLogger(__name__)
@@ -31,7 +39,8 @@ Outputs = list[tuple[str, Message]]
 class BaState:
     frontend: Frontend
     stream: str
-    pca_version: int = -1
+    pca_version: int = -1  # the version every code in the graph is in (-1: none yet)
+    bases: dict[int, PcaBasis] = field(default_factory=dict)  # every basis seen, by version (kept across streams)
     last_seq: int = -1  # highest frame seq seen (keyframe or lite)
     keyframes: int = 0  # keyframes taken into the graph in this stream
     keyframes_seen: int = 0  # keyframe messages received in this stream (taken or refused)
@@ -47,8 +56,15 @@ def handle_keyframe(state: BaState, msg: Keyframe, cfg: BaSettings) -> Outputs:
     if msg.codes is None:  # geometry still counts; without codes the window falls back to the fixed kernel
         state.rejected["keyframe_without_codes"] += 1
         log.warning("keyframe without codes: no adaptive kernel for it", extra={"stream": msg.stream, "seq": msg.seq})
+    native = None if msg.codes is None else NativeCodes(msg.pca_version, msg.codes)
+    if native is not None and state.pca_version == -1:
+        state.pca_version = msg.pca_version  # no basis yet: the first codes set the version
+    codes = None if native is None else _in_current_version(state, native)
+    if native is not None and codes is None:
+        log.warning("codes of an unknown PCA basis left out of BA", extra={
+            "stream": msg.stream, "seq": msg.seq, "pca_version": native.version, "current": state.pca_version})
     update = state.frontend.add_keyframe(KeyframeInput(msg.seq, msg.t_ns, msg.image, np.asarray(msg.intrinsics),
-                                                       msg.codes, msg.disparity_prior))
+                                                       codes, msg.disparity_prior, native))
     state.keyframes += 1
     state.last_seq = max(state.last_seq, msg.seq)
     return _outputs(state, msg, update, final=False)
@@ -60,11 +76,35 @@ def handle_frame_lite(state: BaState, msg: FrameLite, cfg: BaSettings) -> Output
     return _outputs(state, msg, update, final=False)
 
 
+def _in_current_version(state: BaState, native: NativeCodes) -> np.ndarray | None:
+    """(h, w, K) codes of ``native`` in ``state.pca_version``; None when either basis is unknown."""
+    if native.version == state.pca_version:
+        return native.codes
+    source, target = state.bases.get(native.version), state.bases.get(state.pca_version)
+    if source is None or target is None:
+        return None
+    return convert_codes(native.codes, code_map(source, target))
+
+
 def handle_pca(state: BaState, msg: PcaBasis, cfg: BaSettings) -> Outputs:
-    if msg.version != state.pca_version:
-        log.info("pca basis", extra={"stream": msg.stream, "version": msg.version, "backbone": msg.backbone})
-    state.pca_version = msg.version
+    """Keep the basis; a newer version (or one that frees codes left out) re-codes the graph."""
+    known = state.bases.get(msg.version)
+    if known is not None and np.array_equal(known.mean, msg.mean) and np.array_equal(known.components, msg.components):
+        return []
+    log.info("pca basis", extra={"stream": msg.stream, "version": msg.version, "backbone": msg.backbone})
+    state.bases[msg.version] = msg
+    state.pca_version = max(state.pca_version, msg.version)
+    graph = state.frontend.graph
+    if graph is not None:
+        dropped = graph.recode(lambda native: _as_tensor(_in_current_version(state, native)))
+        if dropped:
+            log.warning("keyframes without codes for BA", extra={"stream": msg.stream, "seqs": dropped[:10],
+                                                                  "pca_version": state.pca_version})
     return []
+
+
+def _as_tensor(codes: np.ndarray | None) -> torch.Tensor | None:
+    return None if codes is None else torch.from_numpy(np.asarray(codes, np.float32))
 
 
 def handle_eos(state: BaState, msg: Eos, cfg: BaSettings) -> Outputs:

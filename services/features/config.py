@@ -66,6 +66,12 @@ class FeaturesSettings(BaseSettings):
     pyramid costs ~20 s per keyframe on 2 CPU cores — see docs/BENCHMARKS.md)."""
     pca_components: int = PcaParams.n_components
     pca_fit_keyframes: int = PcaParams.fit_keyframes
+    pca_refit_below: float = 0.9
+    """Refit the PCA basis (a new version on ``pca``) when a keyframe keeps less than this share of its feature
+    variance; 0 freezes the first basis. KITTI 07: 0.90 min / 0.95 median kept, vs 0.25 / 0.69 frozen
+    (docs/BENCHMARKS.md). ba and mapstore convert codes between versions."""
+    pca_refit_window: int = 5
+    """A refit uses the latest this many keyframes (0 = all so far; 0.78 min on KITTI 07)."""
     depth_short_side: int = DepthParams.model_short_side
 
     def oracle_params(self) -> OracleParams:
@@ -87,6 +93,7 @@ class FeaturesSettings(BaseSettings):
                 outlier_fraction=self.outlier_fraction,
             ),
             pyramid=PyramidParams(scales=self.pyramid_scales(on_cuda), patch_size=patch_size),
-            pca=PcaParams(n_components=self.pca_components, fit_keyframes=self.pca_fit_keyframes),
+            pca=PcaParams(n_components=self.pca_components, fit_keyframes=self.pca_fit_keyframes,
+                          refit_below=self.pca_refit_below, refit_window=self.pca_refit_window),
             depth=DepthParams(model_short_side=self.depth_short_side),
         )  # fmt: skip

@@ -67,9 +67,11 @@ def handle_eos(state: MapState, msg: Eos, cfg: MapstoreSettings) -> list[tuple[s
 
 
 def stream_complete(state: MapState) -> bool:
-    """ba's final graph is in, and so is every keyframe it names (keyframes come from features, on another key)."""
+    """ba's final graph is in, and so is every keyframe it names (keyframes come from features, on another key)
+    with the PCA basis it was coded with (the ``pca`` key may lag behind the keyframe)."""
     with state.lock:
-        return state.final_keyframes is not None and state.final_keyframes <= set(state.map.contents)
+        fused = set(state.map.contents) - set(state.map.held)
+        return state.final_keyframes is not None and state.final_keyframes <= fused
 
 
 def finish_stream(state: MapState, msg: Eos, cfg: MapstoreSettings) -> list[tuple[str, Message]]:

@@ -2,6 +2,13 @@
 
 Every change is committed to the store first and applied to the map only after the commit, so the map
 (what queries see) never holds anything a restart would not reload.
+
+PCA versions: keyframes are stored with the codes and version they arrived with; the fused map is kept in the
+latest basis version (the one queries are scored with). A newer basis re-sums the fused codes through one
+affine map per keyframe version (`KeyframeMap.set_code_space`); a keyframe whose basis has not arrived yet is
+stored and held (not fused, not counted as in the map) until it does — also across a restart, since bases are
+stored too. A restart converts each stored keyframe from its own version to the latest stored one, which is
+what the uninterrupted run did, so both give the same map.
 """
 
 from __future__ import annotations
@@ -16,7 +23,7 @@ import numpy as np
 from services.mapstore.config import MapstoreSettings
 from services.mapstore.core.geometry import sample_cell_colours
 from services.mapstore.core.keyframe import KeyframeContent, KeyframeDepth
-from services.mapstore.core.map import KeyframeMap
+from services.mapstore.core.map import KeyframeMap, code_maps_to_latest
 from services.mapstore.core.scoring import PcaBasis, ScoringIndex
 from services.mapstore.store import MapStore
 
@@ -32,8 +39,10 @@ class MapState:
         self.store = MapStore(Path(cfg.db_path.format(stream=cfg.stream)), synchronous=cfg.synchronous)
         stored = self.store.load()
         voxel = float(stored.meta["voxel_size"]) if "voxel_size" in stored.meta else None
-        self.map = KeyframeMap(cfg.map_params(), voxel_size=voxel)
+        self.map = KeyframeMap(cfg.map_params(), voxel_size=voxel, versioned=True)
         self.bases: dict[int, PcaBasis] = stored.bases
+        if self.bases:
+            self.map.set_code_space(*code_maps_to_latest(self.bases))
         self.metric = stored.meta.get("metric") == "1"
         self.intrinsics = stored.intrinsics
         for kf_id, content in stored.contents.items():
@@ -49,7 +58,7 @@ class MapState:
         self.pending_eos = None
         self.eos_deadline = 0.0
         log.info("map loaded", extra={"stream": cfg.stream, "keyframes": len(stored.contents),
-                                      "voxels": len(self.map.fused().keys)})
+                                      "held": len(self.map.held), "voxels": len(self.map.fused().keys)})
 
     def close(self) -> None:
         self.store.close()
@@ -68,13 +77,26 @@ class MapState:
             self.store.put_keyframe(content, intrinsics, jpeg)
             self.intrinsics[kf_id] = np.asarray(intrinsics, np.float64)
             self.map.add_content(content)
+            if pca_version not in self.bases:  # zenoh orders per key only: its basis may still be on the way
+                log.info("keyframe held until its PCA basis arrives", extra={"stream": self.cfg.stream, "seq": kf_id,
+                                                                             "pca_version": pca_version})
             # ba's graph may have overtaken this keyframe on the bus (they come from different services)
             self._refresh(self.metric)
 
     def add_basis(self, basis: PcaBasis) -> None:
+        """Commit then apply a basis: the fused map moves to the latest version, held keyframes it frees are fused."""
         with self.lock:
+            known = self.bases.get(basis.version)
+            if known is not None and np.array_equal(known.mean, basis.mean) and \
+                    np.array_equal(known.components, basis.components):
+                return  # a repeat (features' late-joiner reply, or a re-published message)
             self.store.put_basis(basis)
             self.bases[basis.version] = basis
+            self.map.set_code_space(*code_maps_to_latest(self.bases))
+            self._refresh(self.metric)
+            if self.map.held:
+                log.info("keyframes held for their PCA basis", extra={"stream": self.cfg.stream,
+                                                                      "held": self.map.held[:10]})
 
     def update_graph(self, poses: dict[int, np.ndarray], depths: dict[int, KeyframeDepth], metric: bool) -> int:
         """Commit then apply poses and depths; re-fuse what changed. Returns the number of re-fused keyframes."""

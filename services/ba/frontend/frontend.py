@@ -20,7 +20,7 @@ from services.ba.core import flow as core_flow
 from services.ba.core import se3
 from services.ba.frontend import edges, init, motion
 from services.ba.frontend.frames import FramePoses, FrameRecord
-from services.ba.frontend.graph import GRID, KeyframeGraph, grid_intrinsics, working_intrinsics
+from services.ba.frontend.graph import GRID, KeyframeGraph, NativeCodes, grid_intrinsics, working_intrinsics
 from services.ba.frontend.params import FrontendParams
 
 logger = logging.getLogger(__name__)
@@ -31,8 +31,9 @@ class KeyframeInput(NamedTuple):
     t_ns: int
     image: np.ndarray  # (H, W, 3) uint8 RGB or (H, W) grey, working resolution (multiples of 8)
     intrinsics: np.ndarray  # (4,) float64 working-resolution (fx, fy, cx, cy)
-    codes: np.ndarray | None = None  # (H/8, W/8, K) feature codes
+    codes: np.ndarray | None = None  # (H/8, W/8, K) feature codes in the version all graph codes share
     disparity_prior: np.ndarray | None = None  # (H/8, W/8) 1/m, 0 = none
+    native_codes: NativeCodes | None = None  # the codes as received, for KeyframeGraph.recode on a new basis
 
 
 class FrameInput(NamedTuple):
@@ -84,7 +85,7 @@ class Frontend:
         prior = None if kf.disparity_prior is None else torch.from_numpy(np.asarray(kf.disparity_prior, np.float64))
         codes = None if kf.codes is None else torch.from_numpy(np.asarray(kf.codes, np.float32))
         pose, disp = self._predict(prior)
-        k = g.append(kf.seq, kf.t_ns, grey, codes, prior, pose, disp)
+        k = g.append(kf.seq, kf.t_ns, grey, codes, prior, pose, disp, kf.native_codes)
         try:
             return self._integrate(k)
         except Exception:

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import logging
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import numpy as np
 import torch
@@ -26,6 +26,13 @@ def working_intrinsics(grid: torch.Tensor) -> np.ndarray:
     """1/8-grid intrinsics ``(4,)`` -> working-resolution (fx, fy, cx, cy) float64."""
     fx, fy, cx, cy = map(float, grid)
     return np.array([fx * GRID, fy * GRID, (cx + 0.5) * GRID - 0.5, (cy + 0.5) * GRID - 0.5])
+
+
+class NativeCodes(NamedTuple):
+    """A keyframe's codes as features sent them, kept so they can be mapped into any later basis version."""
+
+    version: int  # PCA basis version they were coded with
+    codes: np.ndarray  # (h, w, K) float16 (or float32)
 
 
 class Targets(NamedTuple):
@@ -53,7 +60,8 @@ class KeyframeGraph:
         self.seqs: list[int] = []
         self.stamps: list[int] = []
         self.images: list[np.ndarray] = []  # (H, W) uint8 grey, working resolution
-        self.codes: list[torch.Tensor | None] = []  # (h, w, K) float32
+        self.codes: list[torch.Tensor | None] = []  # (h, w, K) float32, all in the service's current PCA version
+        self.native_codes: list[NativeCodes | None] = []  # as received (None: the keyframe came without codes)
         self.priors: list[torch.Tensor | None] = []  # (h, w) float64 disparity prior (0 = none)
         self.poses: list[torch.Tensor] = []  # (4, 4) float64
         self.disparity: list[torch.Tensor] = []  # (h, w) float64
@@ -73,12 +81,13 @@ class KeyframeGraph:
         return self.seqs.index(seq)
 
     def append(self, seq: int, stamp: int, grey: np.ndarray, codes, prior, pose: torch.Tensor,
-               disparity: torch.Tensor) -> int:
+               disparity: torch.Tensor, native_codes: NativeCodes | None = None) -> int:
         h, w = self.grid_hw
         self.seqs.append(seq)
         self.stamps.append(stamp)
         self.images.append(grey)
         self.codes.append(codes)
+        self.native_codes.append(native_codes)
         self.priors.append(prior)
         self.poses.append(pose)
         self.disparity.append(disparity)
@@ -89,11 +98,20 @@ class KeyframeGraph:
     def remove(self, k: int) -> None:
         """Drop keyframe ``k`` with its proximity edges and cached targets."""
         seq = self.seqs[k]
-        for store in (self.seqs, self.stamps, self.images, self.codes, self.priors, self.poses, self.disparity,
-                      self.static, self.confidence):
+        for store in (self.seqs, self.stamps, self.images, self.codes, self.native_codes, self.priors, self.poses,
+                      self.disparity, self.static, self.confidence):
             del store[k]
         self.proximity = {e for e in self.proximity if seq not in e}
         self._cache = {e: t for e, t in self._cache.items() if seq not in e}
+
+    def recode(self, convert: Callable[[NativeCodes], torch.Tensor | None]) -> list[int]:
+        """Replace every keyframe's BA codes by ``convert`` of the codes it arrived with (a new PCA version: ARK and
+        the embedding term compare codes across keyframes, so all must be in one version). Keyframes that came
+        without native codes keep theirs. Returns the seqs ``convert`` left without codes."""
+        for k, native in enumerate(self.native_codes):
+            if native is not None:
+                self.codes[k] = convert(native)
+        return [s for s, c, n in zip(self.seqs, self.codes, self.native_codes) if c is None and n is not None]
 
     def targets(self, i: int, j: int) -> Targets:
         """Cached flow targets of keyframe ``i`` into keyframe ``j`` (positions)."""

@@ -4,6 +4,10 @@ Each keyframe's contribution (its voxel keys and per-voxel sums) is kept, so a k
 depth changed is re-fused by subtracting its old contribution and adding the new one; nothing else is
 touched. Sums are float64 (positions, weights) and float32 (codes, colours); a voxel whose
 observation count drops to zero is cleared exactly, so rounding does not accumulate in empty voxels.
+
+A contribution keeps its code sums in the PCA version its keyframe was coded with; the grid holds them in the
+map's current version, each contribution entering through the affine map of its version (Σw·z ↦ MΣw·z + cΣw,
+``services/common/pca_codes.py``). A new version re-sums the grid's codes from the contributions (`recode`).
 """
 
 from __future__ import annotations
@@ -12,6 +16,8 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
+
+from services.common.pca_codes import CodeMap, convert_sums
 
 _KEY_BITS = 21
 _KEY_OFFSET = 1 << (_KEY_BITS - 1)
@@ -138,14 +144,20 @@ class VoxelGrid:
         self._used += 1
         return self._used - 1
 
-    def apply(self, c: Contribution, sign: int) -> None:
-        """Add (sign=+1) or subtract (sign=−1) a keyframe's contribution."""
-        if c.codes.shape[1:] != (self.code_dim,) and c.keys.size:
-            raise ValueError(f"codes have {c.codes.shape[1]} channels, map has {self.code_dim}")
+    def _grid_codes(self, c: Contribution, cmap: CodeMap | None) -> np.ndarray:
+        """A contribution's (M, K) code sums in the grid's version (``cmap``: from its own; None = the same)."""
+        codes = c.codes if cmap is None or cmap.is_identity else convert_sums(c.codes, c.weight, cmap)
+        if codes.shape[1:] != (self.code_dim,) and c.keys.size:
+            raise ValueError(f"codes have {codes.shape[1]} channels, map has {self.code_dim}")
+        return codes
+
+    def apply(self, c: Contribution, sign: int, cmap: CodeMap | None = None) -> None:
+        """Add (sign=+1) or subtract (sign=−1) a keyframe's contribution, its codes mapped by ``cmap``."""
+        codes = self._grid_codes(c, cmap)
         slots = self._slots(c.keys)  # keys are distinct within a contribution: plain fancy indexing
         self._weight[slots] += sign * c.weight
         self._xyz[slots] += sign * c.xyz
-        self._codes[slots] += sign * c.codes
+        self._codes[slots] += sign * codes
         self._colours[slots] += sign * c.colours
         self._count[slots] += sign * c.count
         empty = slots[self._count[slots] <= 0]
@@ -154,6 +166,15 @@ class VoxelGrid:
             self._free.append(slot)
         for arr in (self._weight, self._xyz, self._codes, self._colours, self._count):
             arr[empty] = 0
+
+    def recode(self, parts: list[tuple[Contribution, CodeMap | None]], code_dim: int) -> None:
+        """Re-sum every voxel's codes in a new version (``code_dim`` = its K) from all the contributions now
+        applied, each with the map from its own version; weights, positions and colours are untouched."""
+        self.code_dim = code_dim
+        codes = np.zeros((self._keys.shape[0], code_dim), np.float64)
+        for c, cmap in parts:
+            codes[self._slots(c.keys)] += self._grid_codes(c, cmap)
+        self._codes = codes.astype(np.float32)
 
     def __len__(self) -> int:
         return len(self._slot_of)

@@ -4,6 +4,10 @@ Keyframes whose pose or depth changed — and their consistency neighbours, whos
 marked dirty; `refresh()` re-fuses exactly those by subtracting their old contribution and adding the new one.
 The earlier keyframes a changed keyframe may carve (core/carving.py) are re-checked first: only those whose
 carved cells changed are re-fused.
+
+Codes stay in the PCA version each keyframe was coded with; the fused map is in one version, `code_version`
+(the latest basis), reached from each keyframe's own version by one affine map (`set_code_space`). A keyframe
+whose version has no map yet is held like one without depth or pose: kept, not fused, fused once it has one.
 """
 
 from __future__ import annotations
@@ -14,11 +18,13 @@ from typing import NamedTuple
 
 import numpy as np
 
+from services.common.pca_codes import CodeMap, code_map, identity_map
 from services.mapstore.config import MapParams
 from services.mapstore.core.carving import CarveView, free_space_votes
 from services.mapstore.core.consistency import NeighbourView, depth_consistency
 from services.mapstore.core.fusion import Contribution, FusedVoxels, VoxelGrid, make_contribution
 from services.mapstore.core.keyframe import KeyframeContent, KeyframeDepth, candidate_points, world_points
+from services.mapstore.core.scoring import PcaBasis
 
 log = logging.getLogger(__name__)
 
@@ -29,7 +35,7 @@ class KeyframePoints(NamedTuple):
     cells: np.ndarray  # (M,) int64 flat grid cell index r·w + c
     xyz: np.ndarray  # (M, 3) float64 world coordinates under the keyframe's latest pose
     weight: np.ndarray  # (M,) float64 confidence × static × consistency (carved points are left out)
-    codes: np.ndarray  # (M, K) float16
+    codes: np.ndarray  # (M, K) float16 in the keyframe's own PCA version (content.pca_version)
     colours: np.ndarray  # (M, 3) uint8
 
 
@@ -40,16 +46,27 @@ class RefreshReport(NamedTuple):
     voxels: int  # occupied voxels afterwards
 
 
+def code_maps_to_latest(bases: dict[int, PcaBasis]) -> tuple[int, dict[int, CodeMap]]:
+    """(latest version, {version: map from its codes to the latest's}) for every known basis (at least one)."""
+    if not bases:
+        raise ValueError("no PCA basis known")
+    latest = max(bases)
+    return latest, {v: identity_map(b.rank) if v == latest else code_map(b, bases[latest]) for v, b in bases.items()}
+
+
 class KeyframeMap:
     """Mutable map state; no I/O. Feed it keyframe content, depths and poses, then `refresh()`."""
 
-    def __init__(self, params: MapParams, voxel_size: float | None = None) -> None:
+    def __init__(self, params: MapParams, voxel_size: float | None = None, versioned: bool = False) -> None:
         """
         Args:
             params: the map parameters.
             voxel_size: fixed voxel edge in world units; None derives it from params.fusion
                 (absolute, or relative to the median depth of the first fused keyframe).
+            versioned: hold every keyframe until `set_code_space` gives a map for its PCA version; False fuses
+                codes as they come (for callers whose keyframes share one version).
         """
+        self.versioned = versioned
         self.params = params
         self.contents: dict[int, KeyframeContent] = {}
         self.depths: dict[int, KeyframeDepth] = {}
@@ -58,7 +75,9 @@ class KeyframeMap:
         if voxel_size is None and params.fusion.voxel_mode == "absolute":
             self.voxel_size = params.fusion.voxel_size
         self._grid: VoxelGrid | None = None
-        self._contrib: dict[int, Contribution] = {}
+        self._contrib: dict[int, tuple[Contribution, int]] = {}  # per fused keyframe: (sums, their PCA version)
+        self.code_version: int | None = None  # PCA version of the fused codes; None until a basis is known
+        self._code_maps: dict[int, CodeMap] = {}  # PCA version -> map of its codes into code_version
         self._dirty: set[int] = set()
         self._recheck: set[int] = set()  # keyframes whose carving may have changed
         self._carved: dict[int, np.ndarray] = {}  # per fused keyframe: (C,) int64 cells carved when it was fused
@@ -96,7 +115,36 @@ class KeyframeMap:
 
     def _is_ready(self, kf_id: int) -> bool:
         c, d = self.contents.get(kf_id), self.depths.get(kf_id)
-        return c is not None and d is not None and kf_id in self.poses and c.codes.shape[:2] == d.disparity.shape
+        return (c is not None and d is not None and kf_id in self.poses and c.codes.shape[:2] == d.disparity.shape
+                and (not self.versioned or c.pca_version in self._code_maps))
+
+    def set_code_space(self, version: int, maps: dict[int, CodeMap]) -> None:
+        """Put the fused map's codes into PCA version ``version``; ``maps[v]`` maps version v's (…, K_v) codes into
+        it (identity for ``version`` itself) and must cover every fused keyframe's version. Fused code sums are
+        re-summed through the new maps (no geometry is recomputed); held keyframes whose version now has a map
+        are fused at the next `refresh`."""
+        if version not in maps:
+            raise ValueError(f"code maps must include the target version {version}")
+        if not self.versioned:
+            raise ValueError("set_code_space needs a map built with versioned=True")
+        missing = {v for _, v in self._contrib.values()} - set(maps)
+        if missing:
+            raise ValueError(f"no code map for fused versions {sorted(missing)}")
+        held = [k for k in self.contents if not self._is_ready(k)]
+        self.code_version, self._code_maps = version, dict(maps)
+        if self._grid is not None:
+            self._grid.recode([(c, self._code_maps[v]) for c, v in self._contrib.values()],
+                              maps[version].matrix.shape[0])
+        for kf_id in held:
+            if self._is_ready(kf_id):
+                self._touch(kf_id)
+        self.revision += 1
+        self._fused_cache = None
+
+    @property
+    def held(self) -> list[int]:
+        """Keyframes with content whose PCA version has no code map yet (kept, not fused), ascending."""
+        return sorted(k for k, c in self.contents.items() if self.versioned and c.pca_version not in self._code_maps)
 
     def _touch(self, kf_id: int) -> None:
         """Mark a keyframe and its consistency neighbours dirty; keep the ready list sorted."""
@@ -192,16 +240,18 @@ class KeyframeMap:
             old = self._contrib.pop(kf_id, None)
             self._carved.pop(kf_id, None)
             if old is not None:
-                self._grid.apply(old, -1)
+                self._grid.apply(old[0], -1, self._code_maps.get(old[1]))
             if not self._is_ready(kf_id):
                 continue
             self._ensure_voxel_size(kf_id)
             pts, self._carved[kf_id] = self._points(kf_id)
+            version = self.contents[kf_id].pca_version
+            cmap = self._code_maps.get(version)  # None: unversioned map, codes as they are
             if self._grid is None:
-                self._grid = VoxelGrid(pts.codes.shape[1])
+                self._grid = VoxelGrid(pts.codes.shape[1] if cmap is None else cmap.matrix.shape[0])
             contribution = make_contribution(pts.xyz, pts.weight, pts.codes, pts.colours, self.voxel_size)
-            self._grid.apply(contribution, +1)
-            self._contrib[kf_id] = contribution
+            self._grid.apply(contribution, +1, cmap)
+            self._contrib[kf_id] = (contribution, version)
         if dirty:
             self.revision += 1
             self._fused_cache = None
@@ -212,6 +262,8 @@ class KeyframeMap:
         if self._fused_cache is None:
             if self._grid is None:
                 k = next(iter(self.contents.values())).codes.shape[2] if self.contents else 0
+                if self.code_version is not None:
+                    k = self._code_maps[self.code_version].matrix.shape[0]
                 self._fused_cache = VoxelGrid(k, 1).fused()
             else:
                 self._fused_cache = self._grid.fused()
