@@ -1,6 +1,9 @@
 """Features service: ``frame`` in; ``keyframe`` / ``frame_lite`` / ``pca`` / ``eos`` out; ``credit`` back to
 ingest; ``intrinsics`` from ba refine the focal-length guess. One handler per message kind; ``run`` only
-receives, handles and publishes."""
+receives, handles and publishes.
+
+The ``pca`` key is also a queryable over every basis version published in this run (``?version=<n>``; the
+latest without a selector), so a consumer that missed one (late join, restart, lost message) can fetch it."""
 from __future__ import annotations
 
 import logging
@@ -28,6 +31,7 @@ from .oracle import ORACLE_BACKBONE, SynthOracleBackbone
 log = logging.getLogger(__name__)
 POLL_S = 0.05
 CREDIT_PERIOD_S = 0.1
+VERSION_PARAM = "version"  # selector parameter of the pca queryable: kmvipe/<s>/pca?version=<n>
 
 Outputs = list[tuple[str, Message]]
 
@@ -43,7 +47,10 @@ class FeaturesState:
     frames_seen: int = 0
     pending_eos: Eos | None = None  # ingest's EOS, held until every frame it announced has arrived
     eos_deadline: float = 0.0
-    basis: CoreBasis | None = None
+    basis: CoreBasis | None = None  # the latest basis
+    # every basis published in this run, by version, for the pca queryable (K x D float32: ~100 KB at K = 32,
+    # D = 768, so ~5 MB for the ~50 versions of a KITTI drive)
+    bases: dict[int, CoreBasis] = field(default_factory=dict)
     published: int = 0
     bad_frames: int = 0
     # keyframe seq -> (original width, height, t_ns): keyframes may wait for the PCA basis, so what leaves later
@@ -157,6 +164,7 @@ def _coded(state: FeaturesState, stream: str, basis: CoreBasis | None,
     outputs: Outputs = []
     if basis is not None:
         state.basis = basis
+        state.bases[basis.version] = basis
         outputs.append((keys.topic(stream, keys.PCA), pca_message(stream, basis, ready[0][0].seq if ready else 0)))
     for kf, codes in ready:
         w, h, t_ns = state.pending.pop(kf.seq)
@@ -183,8 +191,8 @@ def run(cfg: FeaturesSettings, bus: Bus, stop: threading.Event, state: FeaturesS
     topic = lambda name: keys.topic(cfg.stream, name)  # noqa: E731
     inbox = bus.inbox({topic(keys.FRAME): [Frame], topic(keys.INTRINSICS): [Intrinsics], topic(keys.EOS): [Eos]},
                       maxsize=4 * cfg.credit_window + 16)
-    # late joiners (a restarted mapstore) ask for the current basis
-    bus.serve(topic(keys.PCA), lambda *_: _current_basis(state))
+    # late joiners (a restarted mapstore) ask for the current basis, consumers that missed one for its version
+    bus.serve(topic(keys.PCA), lambda key, params, payload: answer_pca(state, params))
     bus.ready()
     log.info("features ready", extra={"stream": cfg.stream, "backbone": cfg.backbone})
     next_credit = 0.0
@@ -209,7 +217,26 @@ def run(cfg: FeaturesSettings, bus: Bus, stop: threading.Event, state: FeaturesS
     return state
 
 
-def _current_basis(state: FeaturesState) -> bytes:
-    if state.basis is None:
-        raise LookupError("no PCA basis fitted yet")
-    return pca_message(state.stream, state.basis).encode()
+def answer_pca(state: FeaturesState, params: dict[str, str]) -> bytes:
+    """The ``pca`` queryable's reply: the encoded ``PcaBasis`` of selector ``version=<n>``, or the latest one
+    without a selector (called on a Zenoh thread: it only reads ``state``).
+
+    Raises (the bus turns them into error replies):
+        ValueError: the version is not an integer.
+        LookupError: no basis yet, or none of that version was published in this run.
+    """
+    raw = params.get(VERSION_PARAM)
+    if raw is None:
+        if state.basis is None:
+            raise LookupError("no PCA basis fitted yet")
+        return pca_message(state.stream, state.basis).encode()
+    try:
+        version = int(raw)
+    except ValueError:
+        raise ValueError(f"{VERSION_PARAM} must be an integer, got {raw!r}") from None
+    basis = state.bases.get(version)
+    if basis is None:
+        known = sorted(list(state.bases))  # list() first: the loop thread may add a version meanwhile
+        have = f"versions {known[0]}..{known[-1]}" if known else "no basis yet"
+        raise LookupError(f"PCA basis version {version} was not published in this run ({have})")
+    return pca_message(state.stream, basis).encode()

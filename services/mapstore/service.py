@@ -1,6 +1,10 @@
 """Mapstore service: keyframe / pca / graph / eos in, queryables on ``kmvipe/<s>/map/**`` out.
 
 One handler per message kind (`handle_<kind>(state, msg, cfg)`); `run` only receives, handles and serves.
+
+A keyframe coded with a PCA basis version that no ``pca`` message brought (missed while down, or lost) is held;
+`run` asks features' ``pca`` queryable for that version (`BasisFetch`: once, then again every ``retry_s`` while
+it fails) and feeds the reply through `handle_pca`, like a ``pca`` message.
 """
 
 from __future__ import annotations
@@ -8,7 +12,10 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import Counter
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable, Container
 
 import numpy as np
 
@@ -134,20 +141,100 @@ def _fetch_current_basis(state: MapState, bus: Bus, cfg: MapstoreSettings) -> No
         log.info("no PCA basis from features yet (it will come on the pca topic)", extra={"reason": str(exc)})
 
 
-def run(cfg: MapstoreSettings, bus: Bus, stop: threading.Event, state: MapState | None = None) -> MapState:
-    """Serve the map of `cfg.stream` until `stop` is set."""
-    state = state or MapState(cfg)
+@dataclass(frozen=True)
+class FetchParams:
+    """How a consumer asks features' ``pca`` queryable for a basis version no ``pca`` message brought."""
+
+    grace_s: float = 0.3
+    """Wait this long after a keyframe names an unknown version before asking: the ``pca`` message is usually
+    just behind it (Zenoh orders messages per key only)."""
+    timeout_s: float = 0.5
+    """Longest wait for one reply; the service loop is blocked meanwhile."""
+    retry_s: float = 2.0
+    """Ask again this long after a failed request for the same version."""
+
+
+class BasisFetch:
+    """The basis versions keyframes named but no ``pca`` message brought, when each may next be asked for, and
+    counts of what was fetched and of failed requests (logged, never fatal). Same code in ba's service.py."""
+
+    def __init__(self, params: FetchParams = FetchParams()) -> None:
+        self.params = params
+        self.next_try: dict[int, float] = {}  # version -> monotonic time of its next request
+        self.fetched: Counter[int] = Counter()  # version -> bases fetched from the queryable
+        self.failures: Counter[str] = Counter()  # reason (timeout | error_reply | bad_reply) -> failed requests
+        self._reported: set[tuple[int, str]] = set()  # (version, reason) logged as a warning (then debug only)
+
+    def want(self, version: int) -> None:
+        self.next_try.setdefault(version, time.monotonic() + self.params.grace_s)
+
+    def due(self, known: Container[int]) -> list[int]:
+        """Versions to ask for now (ascending); versions that arrived meanwhile are forgotten."""
+        for version in [v for v in self.next_try if v in known]:
+            del self.next_try[version]
+        now = time.monotonic()
+        return sorted(v for v, t in self.next_try.items() if t <= now)
+
+    def run_due(self, bus: Bus, stream: str, known: Container[int], on_basis: Callable[[PcaMessage], object]) -> None:
+        """Ask features for every due version and hand each reply to ``on_basis`` (the ``pca`` handler). A
+        timeout (features down) postpones the whole round, so the loop blocks ≤ ``timeout_s`` per ``retry_s``."""
+        for version in self.due(known):
+            try:
+                msg = decode(bus.request(f"{keys.topic(stream, keys.PCA)}?version={version}",
+                                         timeout=self.params.timeout_s, service="features"), PcaMessage)
+                if msg.version != version:
+                    raise DecodeError(f"asked for PCA basis version {version}, got {msg.version}")
+            except (ServiceTimeout, RuntimeError, DecodeError) as exc:
+                reason = "timeout" if isinstance(exc, ServiceTimeout) else \
+                    "error_reply" if isinstance(exc, RuntimeError) else "bad_reply"
+                self._failed(version, reason, stream, exc)
+                if reason == "timeout":
+                    return
+                continue
+            self.fetched[version] += 1
+            log.info("PCA basis fetched from features", extra={"stream": stream, "pca_version": version})
+            on_basis(msg)
+
+    def _failed(self, version: int, reason: str, stream: str, exc: Exception) -> None:
+        self.failures[reason] += 1
+        retry_at = time.monotonic() + self.params.retry_s
+        self.next_try[version] = retry_at
+        if reason == "timeout":  # the rest of the round would time out too
+            self.next_try.update({v: max(t, retry_at) for v, t in self.next_try.items()})
+        first = (version, reason) not in self._reported
+        self._reported.add((version, reason))
+        log.log(logging.WARNING if first else logging.DEBUG, "PCA basis fetch failed; asking again later", extra={
+            "stream": stream, "pca_version": version, "reason": reason, "error": str(exc),
+            "failures": sum(self.failures.values()), "retry_s": self.params.retry_s})
+
+
+def _held_versions(state: MapState) -> set[int]:
+    """Basis versions of the keyframes held for want of their basis (e.g. stored before a restart)."""
+    with state.lock:
+        return {state.map.contents[k].pca_version for k in state.map.held}
+
+
+def run(cfg: MapstoreSettings, bus: Bus, stop: threading.Event, state: MapState | None = None,
+        fetch: BasisFetch | None = None) -> MapState:
+    """Serve the map of `cfg.stream` until `stop` is set. ``fetch``: the missing-basis requests (counts)."""
+    state, fetch = state or MapState(cfg), fetch or BasisFetch()
     inbox = bus.inbox({keys.topic(cfg.stream, keys.KEYFRAME): [Keyframe], keys.topic(cfg.stream, keys.PCA): [PcaMessage],
                        keys.topic(cfg.stream, keys.GRAPH): [Graph], keys.topic(cfg.stream, keys.EOS): [Eos]})
     bus.serve(keys.map_key(cfg.stream, "**"), lambda key, params, payload: queries.answer(state, cfg.stream, key, params, payload))
     bus.ready()
     _fetch_current_basis(state, bus, cfg)
+    for version in _held_versions(state):
+        fetch.want(version)
     log.info("mapstore serving", extra={"stream": cfg.stream})
     while not stop.is_set():
         delivery = inbox.get(POLL_S)
         if delivery is not None:
             for key, out in handle(state, delivery.msg, cfg):
                 bus.publish(key, out)
+            msg = delivery.msg
+            if isinstance(msg, Keyframe) and msg.codes is not None and msg.pca_version not in state.bases:
+                fetch.want(msg.pca_version)
+        fetch.run_due(bus, cfg.stream, state.bases, lambda basis: handle(state, basis, cfg))
         held = state.pending_eos
         if held is not None and (stream_complete(state) or time.monotonic() > state.eos_deadline):
             for key, out in _guarded(finish_stream, state, held, cfg):
