@@ -22,9 +22,12 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from services.ba.frontend import graph as frontend_graph
+from services.ba.frontend import motion as frontend_motion
 from services.ba.frontend.frontend import FrameInput, Frontend, KeyframeInput
 from services.ba.settings import BaSettings
 from services.common.config import LogSettings
+from services.common.lifecycle import tune_malloc_for_tensors
 from services.common.logs import setup_logging
 from services.evaluation.trajectory_io import Trajectory, write_tum
 from services.features.core.geometry import Intrinsics, fov_prior, resize_to_working, to_grey, working_size
@@ -44,7 +47,9 @@ def main() -> None:
     parser.add_argument("--verbose", action="store_true", help="print every keyframe's last steps")
     parser.add_argument("--out", type=Path, default=None, help="write the TUM trajectory here")
     args = parser.parse_args()
+    tune_malloc_for_tensors()  # as the ba service does
     torch.set_num_threads(args.threads)
+    spent = _instrument()
     setup_logging("bench-frontend", LogSettings(level="WARNING"))
     frames = [f for f in open_source(args.source).frames() if isinstance(f, SourceFrame)]
     frames = frames[args.first:][: args.max_frames]
@@ -78,6 +83,7 @@ def main() -> None:
     print(f"focal {focal:.1f} px (start {start.fx:.1f})")
     print(f"BA {ba_seconds:.1f} s ({ba_seconds / max(n_kf, 1):.2f} s/keyframe), finish {finish_seconds:.1f} s, "
           f"wall {time.perf_counter() - t_start:.1f} s")
+    print("time in: " + ", ".join(f"{name} {sec:.1f} s ({calls} calls)" for name, (sec, calls) in spent.items()))
     rel = np.linalg.inv(poses.poses[0]) @ poses.poses
     angles = np.degrees(np.arccos(np.clip((np.trace(rel[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1)))
     print(f"drift from the first pose: max rotation {angles.max():.3f} deg, max translation "
@@ -87,6 +93,30 @@ def main() -> None:
         print(f"ATE sim3 rmse {ate.rmse:.3f} m  max {ate.max:.3f} m  pairs {ate.n_pairs}")
     if args.out:
         write_tum(args.out, est)
+
+
+def _instrument() -> dict[str, list]:
+    """Wrap the frontend's flow, BA and alignment calls to report where the time goes (bench only)."""
+    spent: dict[str, list] = {}
+
+    def timed(module, attr: str, name: str) -> None:
+        inner = getattr(module, attr)
+        spent[name] = [0.0, 0]
+
+        def wrapper(*args, **kwargs):
+            t0 = time.perf_counter()
+            try:
+                return inner(*args, **kwargs)
+            finally:
+                spent[name][0] += time.perf_counter() - t0
+                spent[name][1] += 1
+        setattr(module, attr, wrapper)
+
+    timed(frontend_graph.core_flow, "pair_targets", "keyframe edge flows (pairs)")
+    timed(frontend_graph.core_flow, "flow_targets", "non-keyframe flows")
+    timed(frontend_graph, "run_ba", "run_ba")
+    timed(frontend_motion, "align", "motion-only alignment")
+    return spent
 
 
 def _print_steps(frontend: Frontend, seq: int, seconds: float) -> None:

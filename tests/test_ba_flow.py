@@ -5,7 +5,7 @@ import cv2
 import numpy as np
 import pytest
 
-from services.ba.core.flow import FlowParams, flow_targets, to_grey
+from services.ba.core.flow import FlowParams, flow_targets, pair_targets, to_grey
 
 
 def _texture(h: int, w: int, seed: int) -> np.ndarray:
@@ -34,6 +34,28 @@ def test_translation_gives_shifted_grid_targets():
     np.testing.assert_allclose(out.target[..., 0][interior], (cols + dx / 8)[interior], atol=0.05)
     np.testing.assert_allclose(out.target[..., 1][interior], (rows + dy / 8)[interior], atol=0.05)
     assert out.confidence[interior].mean() > 0.8
+
+
+def test_half_resolution_targets_are_in_the_same_grid_coordinates():
+    """Non-keyframes' flow runs at half size with 4-px cells: the grid targets must not move (cell centres map)."""
+    img = _texture(128, 160, seed=3)
+    dx, dy = 6.0, 2.0
+    moved = _shift(img, dx, dy)
+    half = lambda a: cv2.resize(a, (80, 64), interpolation=cv2.INTER_AREA)  # noqa: E731
+    out = flow_targets(half(img), half(moved), FlowParams(grid=4, fb_sigma=0.5))
+    rows, cols = np.mgrid[0:16, 0:20]
+    interior = (slice(2, -2), slice(2, -2))
+    np.testing.assert_allclose(out.target[..., 0][interior], (cols + dx / 8)[interior], atol=0.05)
+    np.testing.assert_allclose(out.target[..., 1][interior], (rows + dy / 8)[interior], atol=0.05)
+
+
+def test_pair_targets_equal_two_single_edge_calls():
+    img = _texture(96, 128, seed=4)
+    other = _shift(img, -3.0, 1.5)
+    there, back = pair_targets(img, other, FlowParams())
+    for got, want in ((there, flow_targets(img, other, FlowParams())), (back, flow_targets(other, img, FlowParams()))):
+        np.testing.assert_allclose(got.target, want.target, atol=1e-5)
+        np.testing.assert_allclose(got.confidence, want.confidence, atol=1e-5)
 
 
 def test_inconsistent_region_gets_low_confidence():

@@ -17,7 +17,7 @@ from services.common import keys
 from services.common.bus import Bus
 from services.common.config import BusSettings
 from services.common.pca_codes import code_map, convert_codes
-from services.common.schema import Keyframe, Message, PcaBasis
+from services.common.schema import Keyframe, PcaBasis
 from tests.conftest import wait_until
 from tests.test_pca_fetch_features import features_run, serve
 

@@ -16,6 +16,7 @@ import numpy as np
 from services.common import keys
 from services.common.bus import Bus
 from services.common.config import BusSettings
+from services.common.pca_fetch import BasisFetch, FetchParams
 from services.common.schema import Graph, Keyframe, Message, PcaBasis
 from services.mapstore import service as mapstore
 from services.mapstore.config import MapstoreSettings
@@ -75,7 +76,7 @@ def test_a_keyframe_whose_basis_never_came_is_fused_with_the_basis_fetched_from_
     first_missed = next(i for i, m in enumerate(msgs) if isinstance(m, Keyframe) and m.pca_version == MISSED)
     cfg = settings(tmp_path / "live")
     state = MapState(cfg)
-    fetch = mapstore.BasisFetch(mapstore.FetchParams(retry_s=0.5))
+    fetch = BasisFetch(FetchParams(retry_s=0.5))
     stop = threading.Event()
     with Bus(BusSettings(listen=[unix_endpoint]), "mapstore") as mbus, \
             Bus(BusSettings(connect=[unix_endpoint]), "features") as fbus, \
@@ -135,7 +136,7 @@ def test_a_restarted_mapstore_fetches_the_bases_its_stored_keyframes_wait_for(tm
     first.close()
     state = MapState(cfg)  # restart: reloads the held keyframe from SQLite; nothing more comes on the topics
     assert held(state) == missed
-    fetch = mapstore.BasisFetch()
+    fetch = BasisFetch()
     stop = threading.Event()
     with Bus(BusSettings(listen=[unix_endpoint]), "features") as fbus, \
             Bus(BusSettings(connect=[unix_endpoint]), "mapstore") as mbus:

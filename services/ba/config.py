@@ -52,6 +52,8 @@ class BASettings(BaseSettings):
     """ARK sigmoid temperature."""
     robust_scale: float = 0.5
     """Barron scale c in grid pixels."""
+    compute_dtype: Literal["float32", "float64"] = "float32"
+    """Per-pixel BA arithmetic; the camera system is float64 either way (docs/BENCHMARKS.md, BA core)."""
     flow_preset: Literal["ultrafast", "fast", "medium"] = "medium"
     """OpenCV DIS preset of the flow targets."""
     fb_sigma: float = 1.0
@@ -67,7 +69,8 @@ class BASettings(BaseSettings):
         """BA parameters of the frontend (or, with ``global_ba``, of the background global BA)."""
         return BAParams(iterations=self.global_iterations if global_ba else self.iterations,
                         lambda_embed=self.lambda_embed, embed_form=self.embed_form, alpha_disp=self.alpha_disp,
-                        optimise_focal=self.optimise_focal, robust=self.robust_params())
+                        optimise_focal=self.optimise_focal, robust=self.robust_params(),
+                        compute_dtype=self.compute_dtype)
 
     def flow_params(self) -> FlowParams:
         """Flow-target parameters."""

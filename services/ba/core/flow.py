@@ -59,11 +59,27 @@ def flow_targets(image_i: np.ndarray, image_j: np.ndarray, params: FlowParams,
     ``exp(-|F(p) + B(p + F(p))|^2 / (2 sigma^2))`` (0 where ``p + F(p)`` leaves the image). ``init_flow`` and
     ``init_backward`` (``(H, W, 2)`` float32) start DIS from a predicted forward / backward flow.
     """
+    return _targets(*_flows(image_i, image_j, params, init_flow, init_backward), params)
+
+
+def pair_targets(image_i: np.ndarray, image_j: np.ndarray, params: FlowParams, init_flow: np.ndarray | None = None,
+                 init_backward: np.ndarray | None = None) -> tuple[FlowTargets, FlowTargets]:
+    """Targets of both edges ``(i, j)`` and ``(j, i)`` from the same two DIS flows: each direction's flow is the
+    other's forward-backward check, so a pair costs two flows instead of four (same results as two
+    :func:`flow_targets` calls)."""
+    fwd, bwd = _flows(image_i, image_j, params, init_flow, init_backward)
+    return _targets(fwd, bwd, params), _targets(bwd, fwd, params)
+
+
+def _flows(image_i, image_j, params: FlowParams, init_flow, init_backward) -> tuple[np.ndarray, np.ndarray]:
     height, width = to_grey(image_i).shape
     if height % params.grid or width % params.grid:
         raise ValueError(f"image size {height}x{width} is not a multiple of {params.grid}")
-    fwd = dis_flow(image_i, image_j, params, init_flow)
-    bwd = dis_flow(image_j, image_i, params, init_backward)
+    return dis_flow(image_i, image_j, params, init_flow), dis_flow(image_j, image_i, params, init_backward)
+
+
+def _targets(fwd: np.ndarray, bwd: np.ndarray, params: FlowParams) -> FlowTargets:
+    height, width = fwd.shape[:2]
     xs, ys = np.meshgrid(np.arange(width, dtype=np.float32), np.arange(height, dtype=np.float32))
     land_x, land_y = xs + fwd[..., 0], ys + fwd[..., 1]
     bwd_at = cv2.remap(bwd, land_x, land_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)

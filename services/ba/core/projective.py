@@ -20,7 +20,6 @@ from typing import NamedTuple
 
 import torch
 
-from services.ba.core import se3
 
 # Points closer than this depth (same units as 1/disparity) in the target camera are marked invalid.
 MIN_DEPTH = 1e-3

@@ -6,7 +6,7 @@ the frame with it; at end of stream every frame is aligned again against the fin
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -63,9 +63,16 @@ class FramePoses:
     def _targets(self, graph: KeyframeGraph, k: int, frame: FrameRecord) -> Targets:
         seq = graph.seqs[k]
         if seq not in frame.targets:
-            work = graph.images[k]
-            image = cv2.resize(frame.image, (work.shape[1], work.shape[0]), interpolation=cv2.INTER_LINEAR)
-            ft = core_flow.flow_targets(work, image, graph.flow_params)
+            work, scale = graph.images[k], self.params.flow_downscale
+            size = (work.shape[1] // scale, work.shape[0] // scale)
+            # at 1/scale, a grid cell is grid/scale pixels and the grid coordinates come out the same
+            # ((x + 0.5)/grid - 0.5 with x the landing point at that resolution); fb_sigma is in its pixels
+            params = replace(graph.flow_params, grid=graph.flow_params.grid // scale,
+                             fb_sigma=graph.flow_params.fb_sigma / scale)
+            keyframe = work if scale == 1 else cv2.resize(work, size, interpolation=cv2.INTER_AREA)
+            image = frame.image if frame.image.shape[:2] == size[::-1] else cv2.resize(
+                frame.image, size, interpolation=cv2.INTER_AREA if frame.image.shape[1] > size[0] else cv2.INTER_LINEAR)
+            ft = core_flow.flow_targets(keyframe, image, params)
             frame.targets[seq] = Targets(torch.from_numpy(ft.target), torch.from_numpy(ft.confidence))
         return frame.targets[seq]
 

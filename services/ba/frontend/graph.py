@@ -121,8 +121,12 @@ class KeyframeGraph:
             if self.predict_flow:
                 fwd, bwd = (induced_flow_field(self.poses[a], self.poses[b], self.disparity[a], self.intrinsics, GRID)
                             for a, b in ((i, j), (j, i)))
-            ft = core_flow.flow_targets(self.images[i], self.images[j], self.flow_params, fwd, bwd)
-            self._cache[key] = Targets(torch.from_numpy(ft.target), torch.from_numpy(ft.confidence))
+            # both directions at once: the reverse edge is (almost) always asked for too (temporal edges come
+            # in pairs), and its two flows are these
+            there, back = core_flow.pair_targets(self.images[i], self.images[j], self.flow_params, fwd, bwd)
+            self._cache[key] = Targets(torch.from_numpy(there.target), torch.from_numpy(there.confidence))
+            self._cache.setdefault((self.seqs[j], self.seqs[i]),
+                                   Targets(torch.from_numpy(back.target), torch.from_numpy(back.confidence)))
         return self._cache[key]
 
     def pairs(self, window: list[int], radius: int) -> list[tuple[int, int]]:

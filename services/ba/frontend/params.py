@@ -14,6 +14,8 @@ class MotionParams:
     huber: float = 1.0  # Huber threshold on the flow residual norm (grid px)
     damping: float = 1e-6  # relative Levenberg damping of the 6x6 normal matrix
     min_weight: float = 20.0  # below this total weight (pixel count) the alignment is refused
+    flow_downscale: int = 2  # a non-keyframe's flow is computed at 1/this of the working resolution: frames
+    # arrive as half-size lite images, so full-resolution flow would only add cost (4x) to upsampled pixels
 
 
 @dataclass(frozen=True)
