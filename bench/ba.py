@@ -61,7 +61,7 @@ def main() -> None:
     parser.add_argument("--windows", default="5,10,25")
     parser.add_argument("--radii", default="2,3")
     parser.add_argument("--iters", type=int, default=3)
-    parser.add_argument("--frontend-iters", type=int, default=4, help="iterations per keyframe update")
+    parser.add_argument("--frontend-iters", type=int, default=3, help="iterations per keyframe update")
     parser.add_argument("--codes", choices=("none", "ark", "embed"), default="ark",
                         help="32-d codes: none (fixed kernel), ark (the service default), embed (ARK + embedding term)")
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32", help="per-pixel arithmetic")

@@ -21,8 +21,9 @@ class BaSettings(BASettings):
     threads: int = 1
     """CPU threads for torch. One: ba shares the 2 reference cores with features, and there two threads measured
     slower than one (1.71 vs 0.49 s per iteration at 25 keyframes, docs/BENCHMARKS.md)."""
-    iterations: int = 4
-    """LM iterations of the window BA per new keyframe."""
+    iterations: int = 3
+    """LM iterations of the window BA per new keyframe (KITTI 07: 3 and 4 both give ATE 0.324 m; 3 keeps a
+    25-keyframe window under 0.3 s per keyframe, docs/BENCHMARKS.md)."""
     global_iterations: int = 20
     """LM iterations of the end-of-stream global BA."""
     fixed_alpha: float = 0.0

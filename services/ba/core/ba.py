@@ -257,7 +257,8 @@ def run_ba(state: BAState, problem: BAProblem, params: BAParams) -> BAResult:
         logger.debug("BA iter %d cost %.6g -> %.6g (lm %.1e)", it, costs[-1], trial_cost, lm)
         if trial_cost < costs[-1]:
             state, lm = trial, lm * params.lm_down
-            res = _residuals(state, prep, params, with_jac=True)
+            # after the last iteration only the weights are wanted: no Jacobians
+            res = _residuals(state, prep, params, with_jac=it + 1 < params.iterations)
             ark = _ark(res, prep, params, ark)
             frozen = _frozen(res, params, ark)
             decrease = costs[-1] - trial_cost

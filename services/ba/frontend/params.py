@@ -50,7 +50,7 @@ class FrontendParams:
     graph: GraphParams = field(default_factory=GraphParams)
     init: InitParams = field(default_factory=InitParams)
     motion: MotionParams = field(default_factory=MotionParams)
-    ba: BAParams = field(default_factory=lambda: BAParams(iterations=4, optimise_focal=True))  # per new keyframe
+    ba: BAParams = field(default_factory=lambda: BAParams(iterations=3, optimise_focal=True))  # per new keyframe
     global_ba: BAParams = field(default_factory=lambda: BAParams(iterations=10, optimise_focal=True))  # end
     flow: FlowParams = field(default_factory=FlowParams)
     focal_after: int = 6  # the focal length is refined once the window holds this many keyframes
