@@ -23,6 +23,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -129,9 +130,23 @@ def evaluate_run(out: Path, source: str, seed: int, dim: int, params: mq.MapQual
             name: _f(mq.moving_presence(gt, match, xyz, params.max_dist, gt.label == LABEL_NAMES.index(name)))
             for name in ("person", "chair")},
         "moving_fraction_present_by_place": moved_places(world, gt, match, xyz, params.max_dist, max(kf_seqs)),
+        "static_coverage": static_coverage(gt, xyz, params.max_dist),
         "boxes": region_boxes(world, answer, ate.alignment, max(kf_seqs)),
         "upsampling": upsample_gain(frames, disparities, ate.alignment.scale),
     }
+
+
+def static_coverage(gt: mq.GtPoints, xyz: np.ndarray, max_dist: float) -> dict[str, float | None]:
+    """Fraction of the static GT points with a map point within ``max_dist`` (all labels, and per label): what
+    carving must not take away."""
+    static = ~gt.dynamic
+    if not len(xyz) or not static.any():
+        return {"all": 0.0}
+    dist, _ = cKDTree(xyz).query(gt.xyz[static], k=1)
+    near, labels = dist <= max_dist, gt.label[static]
+    out = {"all": _f(near.mean())}
+    out.update({LABEL_NAMES[i]: _f(near[labels == i].mean()) for i in np.unique(labels)})
+    return out
 
 
 PLACE_MARGIN_M = 0.03  # GT surface samples lie on the objects' box faces: grow the boxes by this
@@ -220,6 +235,9 @@ def print_report(report: dict) -> None:
     print(f"  moving objects: {report['moving_fraction_present']:.3f} of their {report['moving_gt_points']} GT points "
           f"present ({report['map_points_on_moving_objects']} map points on them); by label "
           f"{report['moving_fraction_present_by_label']}")
+    cover = report["static_coverage"]
+    print(f"  static GT points with a map point within {report['max_dist_m']} m: {cover['all']} "
+          f"(floor {cover.get('floor')}, wall {cover.get('wall')})")
     for name, row in report["moving_fraction_present_by_place"].items():
         print(f"    {name}: {row['left']} of the {row['gt_points_left']} GT points of places it left present, "
               f"{row['now']} of the {row['gt_points_now']} where it is at the end")

@@ -139,7 +139,8 @@ def test_full_pipeline_with_oracle_features_gives_a_correct_semantic_map(tmp_pat
     # 16 frames still hold the person's walk (sequence time 0.15-0.55: frames 3-8) and the chair's move (0.6-0.75:
     # frames 9-11) with 3 keyframes after it (12, 14, 15). Measured (2 busy cores, ~2.5 min): ATE 3.3 mm, 97 % of the points within
     # 0.1 m of a GT surface, mIoU 0.93, every object label's top region on the object; person absent (0.0); of the
-    # GT points of the place the chair left, 0.59 present with free-space carving and 0.69 without (re-scored below).
+    # GT points of the place the chair left, 0.15 present with free-space carving (0.58 with depth evidence alone) and
+    # 0.68 without (re-scored below).
     # At a 192x256 working size ba diverged (ATE 1 m), so the default working size stays.
     out = tmp_path / "run"
     report = run_bench(out, "--frames", "16", "--max-frames", "16")
@@ -160,6 +161,11 @@ def test_full_pipeline_with_oracle_features_gives_a_correct_semantic_map(tmp_pat
     uncarved = run_bench(out, "--frames", "16", "--max-frames", "16", "--reuse",
                          env={"KMVIPE_MAPSTORE_CARVE_KEYFRAMES": "0"}, timeout=120)
     left, left_uncarved = places["chair"]["left"], uncarved["moving_fraction_present_by_place"]["chair"]["left"]
-    assert left < left_uncarved - 0.05, (left, left_uncarved)
+    assert left < 0.5 * left_uncarved, (left, left_uncarved)
     assert report["matched_fraction"] >= uncarved["matched_fraction"] - 0.005
-    assert report["miou"] >= uncarved["miou"] - 0.01
+    assert report["static_coverage"]["all"] >= uncarved["static_coverage"]["all"] - 0.01
+    # mIoU over the static labels: the chair label's own score falls with carving, as the GT of its old place counts
+    static_labels = [n for n, row in report["per_label"].items()
+                     if n not in ("chair", "person") and row["iou"] is not None]
+    static_miou = lambda r: np.mean([r["per_label"][n]["iou"] for n in static_labels])  # noqa: E731
+    assert static_miou(report) >= static_miou(uncarved) - 0.01

@@ -66,6 +66,25 @@ class CarvingParams:
     """A view's cell carves only if its flow confidence × static weight is at least this (a moving person or a
     badly tracked cell says nothing about free space); the default is the weight a cell needs to be a map point
     (PointParams.min_weight): evidence of free space is trusted as much as evidence of a surface."""
+    semantic: bool = True
+    """Use the keyframes' codes as evidence too: a later view that sees something else (codes that disagree) at
+    about a point's depth votes like one that sees through it. Monocular depth over a vacated place is pulled
+    towards the object that stood there, so depth alone rarely sees through it."""
+    max_code_cosine: float = 0.2
+    """A view's codes disagree with a point's when the cosine of the two (in the newest PCA space, centred) is
+    below this in every cell of the footprint. Oracle codes of different labels are near-orthogonal (≈ 0), of the
+    same label ≈ 1; real DINO codes of one surface seen from far-apart views can fall well below 1: on KITTI 07,
+    0.5 carved 12 % of the map beyond depth-only carving, 0.2 carved 4.9 %, while the synthetic world's moved chair
+    is carved the same at 0.2 and 0.5 (docs/BENCHMARKS.md, map quality)."""
+    min_code_reliability: float = 0.0
+    """A view's disagreeing codes contradict a point only where its flow confidence × static weight is at least
+    this. 0 (default): BA's ARK weight is low exactly where an object left (the place changed between views), so
+    gating the codes by it would silence the evidence (48-frame synth: old chair place 0.22 present at 0, 0.27 at
+    0.05, 0.40 at 0.1); a nearer moving person is kept from carving what is behind it by occluder_margin."""
+    occluder_margin: float = 0.3
+    """A view whose nearest surface around a point's projection is nearer than (1 − occluder_margin)·z is an
+    occluder in front of the point and its codes say nothing about it (a person walking past is much nearer than
+    the wall behind); within that, disagreeing codes contradict the point."""
 
 
 @dataclass(frozen=True)
@@ -143,6 +162,15 @@ class MapstoreSettings(BaseSettings):
     """Most recent later views of a point that decide whether it is carved."""
     carve_min_violations: int = 2
     """Of those, how many must see through the point (and outnumber the agreeing ones) to carve it."""
+    carve_semantic: bool = True
+    """A later view whose codes disagree with a point's at about its depth counts as seeing through it."""
+    carve_max_code_cosine: float = 0.2
+    """Codes disagree when their cosine is below this (CarvingParams.max_code_cosine)."""
+    carve_occluder_margin: float = 0.3
+    """Surfaces nearer than (1 − this)·z are occluders, not contradictions (CarvingParams.occluder_margin)."""
+    carve_min_code_reliability: float = 0.0
+    """Reliability a view's cell needs for its codes to contradict a point (CarvingParams.min_code_reliability)."""
+    """Surfaces nearer than (1 − this)·z are occluders, not contradictions (CarvingParams.occluder_margin)."""
     device: str = "auto"
     """torch device for scoring."""
     store_images: bool = True
@@ -158,7 +186,11 @@ class MapstoreSettings(BaseSettings):
         return MapParams(points=PointParams(min_weight=self.min_weight),
                          consistency=ConsistencyParams(neighbours=self.consistency_neighbours),
                          carving=CarvingParams(later_keyframes=self.carve_keyframes, recent_views=self.carve_views,
-                                               min_violations=self.carve_min_violations),
+                                               min_violations=self.carve_min_violations,
+                                               semantic=self.carve_semantic,
+                                               max_code_cosine=self.carve_max_code_cosine,
+                                               occluder_margin=self.carve_occluder_margin,
+                                               min_code_reliability=self.carve_min_code_reliability),
                          fusion=FusionParams(voxel_size=self.voxel_size, voxel_mode=self.voxel_mode),
                          scoring=ScoreParams(device=self.device))
 

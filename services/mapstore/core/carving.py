@@ -5,6 +5,12 @@ A point p of keyframe i at depth z in a later view j is
   beyond (1 + free_margin)·z and j's cell there is reliable: j looked past the place p occupied, so whatever
   was there has gone (or p's depth was wrong — either way it does not belong in the map);
 - *agreed with* when j's depth at the projection is within agree_tolerance of z;
+- *contradicted* (semantic evidence, when both have codes) when j's nearest surface around the projection is
+  not clearly in front of p (beyond (1 − occluder_margin)·z) and j's codes there all disagree with p's code
+  (cosine below max_code_cosine in every cell of the footprint): j sees something else where p was. This catches
+  a place that later depths do not see through — monocular depth over a vacated floor is pulled towards the
+  object that stood there — while a much nearer occluder (a person walking in front) still says nothing; a
+  contradicting view votes like one that sees through p, also when its depth agrees with p's;
 - otherwise (occluded by something in front, or ambiguous) j says nothing about p.
 
 Only views later than p's keyframe vote, and per point only the most recent deciding ones: an object that
@@ -30,13 +36,16 @@ class CarveView(NamedTuple):
     disparity: np.ndarray  # (h, w) float, 0 = unknown
     intrinsics: np.ndarray  # (4,) float64 working-resolution (fx, fy, cx, cy)
     reliability: np.ndarray | None  # (h, w) float in [0, 1]: flow confidence × static weight; None = all 1
+    codes: np.ndarray | None = None  # (h, w, K) float32 unit codes (`unit_codes`) in the points' code space, NaN =
+    # no code; None = no semantic evidence. Unit length up front: a view is judged against many keyframes' points
 
 
 class CarveVotes(NamedTuple):
     """The verdict of the most recent deciding views on each of M points."""
 
     deciding: np.ndarray  # (M,) int64 views that agreed with or saw through the point (≤ recent_views)
-    seen_through: np.ndarray  # (M,) int64 of those, the views that saw through it
+    seen_through: np.ndarray  # (M,) int64 of those, the views that saw through or contradicted it
+    contradicted: np.ndarray  # (M,) int64 of those, the views whose codes contradicted it (semantic evidence)
     carved: np.ndarray  # (M,) bool: the point is free space now and leaves the map
 
 
@@ -45,6 +54,19 @@ _FOOTPRINTS = {  # (base: how the projection picks the first cell, offsets of th
     "corners": ("floor", ((0, 0), (0, 1), (1, 0), (1, 1))),
     "3x3": ("round", tuple((dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1))),
 }
+
+
+def _footprint_cells(u: np.ndarray, v: np.ndarray, footprint: str, shape: tuple[int, int]):
+    """Yield (rows, cols, inside) per cell offset of the footprint of (N,) grid coordinates u, v."""
+    if footprint not in _FOOTPRINTS:
+        raise ValueError(f"footprint must be one of {sorted(_FOOTPRINTS)}, got {footprint!r}")
+    base, offsets = _FOOTPRINTS[footprint]
+    pick = np.rint if base == "round" else np.floor
+    r0, c0 = pick(v).astype(np.int64), pick(u).astype(np.int64)
+    h, w = shape
+    for dr, dc in offsets:
+        r, c = r0 + dr, c0 + dc
+        yield r, c, (r >= 0) & (r < h) & (c >= 0) & (c < w)
 
 
 def nearest_disparity_at(disparity: np.ndarray, u: np.ndarray, v: np.ndarray, footprint: str) -> np.ndarray:
@@ -60,52 +82,98 @@ def nearest_disparity_at(disparity: np.ndarray, u: np.ndarray, v: np.ndarray, fo
     """
     if disparity.ndim != 2:
         raise ValueError(f"disparity must be (h, w), got {disparity.shape}")
-    if footprint not in _FOOTPRINTS:
-        raise ValueError(f"footprint must be one of {sorted(_FOOTPRINTS)}, got {footprint!r}")
-    base, offsets = _FOOTPRINTS[footprint]
-    pick = np.rint if base == "round" else np.floor
-    r0, c0 = pick(v).astype(np.int64), pick(u).astype(np.int64)
-    h, w = disparity.shape
     out = np.zeros(u.shape, np.float64)
-    for dr, dc in offsets:
-        r, c = r0 + dr, c0 + dc
-        ok = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+    for r, c, ok in _footprint_cells(u, v, footprint, disparity.shape):
         d = np.zeros(u.shape, np.float64)
         d[ok] = disparity[r[ok], c[ok]]
         np.maximum(out, np.where(np.isfinite(d), d, 0.0), out=out)
     return out
 
 
-def free_space_votes(points_world: np.ndarray, views_newest_first: list[CarveView],
-                     params: CarvingParams) -> CarveVotes:
-    """Which points the most recent later views see through.
+_MIN_CODE_NORM = 1e-6  # a code this short has no direction (e.g. all-zero placeholder codes)
+
+
+def unit_codes(codes: np.ndarray) -> np.ndarray:
+    """(..., K) codes scaled to unit length, float32; codes of (near) zero length or not finite become NaN
+    (no semantic evidence: every cosine with them is NaN)."""
+    codes = np.asarray(codes, np.float32)
+    norm = np.linalg.norm(codes, axis=-1, keepdims=True)
+    ok = np.isfinite(norm) & (norm > _MIN_CODE_NORM)
+    return np.where(ok, codes / np.where(ok, norm, 1.0), np.nan).astype(np.float32)
+
+
+def best_cosine_at(unit_view_codes: np.ndarray, unit_point_codes: np.ndarray, u: np.ndarray, v: np.ndarray,
+                   footprint: str) -> np.ndarray:
+    """Highest cosine between each point's code and the view's codes in the cells around its projection.
+
+    Args:
+        unit_view_codes: (h, w, K) float unit codes of the view (NaN = no code; see `unit_codes`).
+        unit_point_codes: (N, K) float unit codes of the points, in the same code space.
+        u, v: (N,) float64 grid coordinates of the projections (cell centres at integers).
+        footprint: as in `nearest_disparity_at`.
+    Returns:
+        (N,) float64 in [−1, 1]; NaN where no cell of the footprint is inside the view with a code, or the point
+        has no code.
+    """
+    if unit_view_codes.ndim != 3 or unit_point_codes.ndim != 2 or unit_view_codes.shape[2] != unit_point_codes.shape[1]:
+        raise ValueError(f"codes must be (h, w, K) and (N, K), got {unit_view_codes.shape}, {unit_point_codes.shape}")
+    h, w, k = unit_view_codes.shape
+    flat = unit_view_codes.reshape(h * w, k)
+    out = np.full(u.shape, -np.inf)
+    for r, c, ok in _footprint_cells(u, v, footprint, (h, w)):
+        cells = np.clip(r, 0, h - 1) * w + np.clip(c, 0, w - 1)  # outside cells: any index, masked below
+        cos = np.einsum("nk,nk->n", flat.take(cells, axis=0), unit_point_codes)
+        np.fmax(out, np.where(ok, cos, -np.inf), out=out)  # fmax: a NaN (no code) cell never wins over a known one
+    return np.where(np.isfinite(out), out, np.nan)
+
+
+def free_space_votes(points_world: np.ndarray, views_newest_first: list[CarveView], params: CarvingParams,
+                     point_codes: np.ndarray | None = None) -> CarveVotes:
+    """Which points the most recent later views see through (or contradict with their codes).
 
     Args:
         points_world: (M, 3) float64 world points of one keyframe.
         views_newest_first: later keyframes, most recent first (a point stops listening once
             `params.recent_views` views have decided on it).
         params: margins, how many views decide and how many must see through.
+        point_codes: (M, K) float codes of the points, in the views' code space; None (or views without codes,
+            or `params.semantic` off) = geometry alone.
     Returns:
         CarveVotes per point.
     """
     if points_world.ndim != 2 or points_world.shape[1] != 3:
         raise ValueError(f"points must be (M, 3), got {points_world.shape}")
     m = points_world.shape[0]
+    if point_codes is not None and (point_codes.ndim != 2 or point_codes.shape[0] != m):
+        raise ValueError(f"point codes must be ({m}, K), got {point_codes.shape}")
+    unit_points = unit_codes(point_codes) if point_codes is not None and params.semantic else None
     deciding = np.zeros(m, np.int64)
     through = np.zeros(m, np.int64)
+    contradicted = np.zeros(m, np.int64)
     for view in views_newest_first:
         open_idx = np.flatnonzero(deciding < params.recent_views)
         if open_idx.size == 0:
             break
-        agree, free, idx = _judge(points_world[open_idx], view, params)
-        deciding[open_idx[idx[agree | free]]] += 1
-        through[open_idx[idx[free]]] += 1
+        verdict = _judge(points_world[open_idx], None if unit_points is None else unit_points[open_idx], view, params)
+        idx = open_idx[verdict.idx]
+        deciding[idx[verdict.agree | verdict.free]] += 1
+        through[idx[verdict.free]] += 1
+        contradicted[idx[verdict.contradicted]] += 1
     carved = (through >= params.min_violations) & (2 * through > deciding)
-    return CarveVotes(deciding, through, carved)
+    return CarveVotes(deciding, through, contradicted, carved)
 
 
-def _judge(points_world: np.ndarray, view: CarveView, params: CarvingParams):
-    """(agree, free, idx): per point landing on a known cell of `view` (indices idx into the input)."""
+class _Verdict(NamedTuple):
+    """One view's verdict on the points that land on a known cell of it (N of the input's points)."""
+
+    idx: np.ndarray  # (N,) int64 indices into the judged points
+    agree: np.ndarray  # (N,) bool: the view agrees with the point (and does not contradict it)
+    free: np.ndarray  # (N,) bool: the view sees through or contradicts the point
+    contradicted: np.ndarray  # (N,) bool: of `free`, those the view's codes contradict
+
+
+def _judge(points_world: np.ndarray, unit_points: np.ndarray | None, view: CarveView,
+           params: CarvingParams) -> _Verdict:
     h, w = view.disparity.shape
     proj = project(transform_points(view.cam_from_world, points_world), grid_intrinsics(view.intrinsics))
     col, row = np.rint(proj.u), np.rint(proj.v)
@@ -121,4 +189,17 @@ def _judge(points_world: np.ndarray, view: CarveView, params: CarvingParams):
     near = nearest_disparity_at(view.disparity, proj.u[idx], proj.v[idx], params.footprint)
     reliable = np.ones(idx.size, bool) if view.reliability is None else view.reliability[r, c] >= params.min_reliability
     free = (1.0 / near > (1.0 + params.free_margin) * z) & reliable & ~agree
-    return agree, free, idx
+    contradicted = np.zeros(idx.size, bool)
+    if unit_points is not None and view.codes is not None:
+        if view.codes.shape[:2] != (h, w):
+            raise ValueError(f"view codes must be ({h}, {w}, K), got {view.codes.shape}")
+        asked = np.flatnonzero(~free & (1.0 / near >= (1.0 - params.occluder_margin) * z))  # not an occluder
+        cos = best_cosine_at(view.codes, unit_points[idx[asked]], proj.u[idx[asked]], proj.v[idx[asked]],
+                             params.footprint)
+        disagree = np.zeros(idx.size, bool)
+        disagree[asked] = cos < params.max_code_cosine  # NaN (no code): no evidence
+        trusted = np.ones(idx.size, bool) if view.reliability is None else \
+            view.reliability[r, c] >= params.min_code_reliability
+        contradicted = disagree & trusted
+        agree &= ~disagree  # a view that sees something else there does not vouch for the point, trusted or not
+    return _Verdict(idx, agree, free | contradicted, contradicted)

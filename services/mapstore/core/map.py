@@ -18,9 +18,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from services.common.pca_codes import CodeMap, code_map, identity_map
+from services.common.pca_codes import CodeMap, code_map, convert_codes, identity_map
 from services.mapstore.config import MapParams
-from services.mapstore.core.carving import CarveView, free_space_votes
+from services.mapstore.core.carving import CarveView, free_space_votes, unit_codes
 from services.mapstore.core.consistency import NeighbourView, depth_consistency
 from services.mapstore.core.fusion import Contribution, FusedVoxels, VoxelGrid, make_contribution
 from services.mapstore.core.keyframe import KeyframeContent, KeyframeDepth, candidate_points, world_points
@@ -81,6 +81,7 @@ class KeyframeMap:
         self._dirty: set[int] = set()
         self._recheck: set[int] = set()  # keyframes whose carving may have changed
         self._carved: dict[int, np.ndarray] = {}  # per fused keyframe: (C,) int64 cells carved when it was fused
+        self._unit_codes: dict[int, np.ndarray] = {}  # per keyframe: (h, w, K) unit codes in code_version (carving)
         self._ready: list[int] = []  # sorted ids with content, depth and pose
         self._fused_cache: FusedVoxels | None = None
         self.revision = 0
@@ -89,6 +90,7 @@ class KeyframeMap:
     def add_content(self, content: KeyframeContent) -> None:
         """Add or replace a keyframe's codes and colours."""
         self.contents[content.kf_id] = content
+        self._unit_codes.pop(content.kf_id, None)
         self._touch(content.kf_id)
 
     def set_depth(self, kf_id: int, depth: KeyframeDepth) -> None:
@@ -109,7 +111,7 @@ class KeyframeMap:
 
     def remove(self, kf_id: int) -> None:
         """Forget a keyframe and take its points out of the map at the next refresh."""
-        for table in (self.contents, self.depths, self.poses):
+        for table in (self.contents, self.depths, self.poses, self._unit_codes):
             table.pop(kf_id, None)
         self._touch(kf_id)
 
@@ -131,7 +133,10 @@ class KeyframeMap:
         if missing:
             raise ValueError(f"no code map for fused versions {sorted(missing)}")
         held = [k for k in self.contents if not self._is_ready(k)]
+        if version != self.code_version and self.params.carving.semantic:
+            self._recheck.update(self._carved)  # carving compares codes in the fused space, which changes
         self.code_version, self._code_maps = version, dict(maps)
+        self._unit_codes.clear()
         if self._grid is not None:
             self._grid.recode([(c, self._code_maps[v]) for c, v in self._contrib.values()],
                               maps[version].matrix.shape[0])
@@ -182,7 +187,18 @@ class KeyframeMap:
             ones = np.ones(d.disparity.shape, np.float64)
             reliability = ((ones if d.confidence is None else d.confidence)
                            * (ones if d.static_weight is None else d.static_weight))
-        return CarveView(np.linalg.inv(self.poses[kf_id]), d.disparity, d.intrinsics, reliability)
+        codes = self._fused_space_codes(kf_id) if self.params.carving.semantic else None
+        return CarveView(np.linalg.inv(self.poses[kf_id]), d.disparity, d.intrinsics, reliability, codes)
+
+    def _fused_space_codes(self, kf_id: int) -> np.ndarray:
+        """(h, w, K) float32 unit codes of a keyframe in the fused map's code space (cached until its content or
+        the code space changes); an unversioned map compares codes as they come."""
+        if kf_id not in self._unit_codes:
+            content = self.contents[kf_id]
+            cmap = self._code_maps.get(content.pca_version)
+            codes = content.codes if cmap is None or cmap.is_identity else convert_codes(content.codes, cmap)
+            self._unit_codes[kf_id] = unit_codes(codes)
+        return self._unit_codes[kf_id]
 
     # ----- fusion -------------------------------------------------------------------------
     @property
@@ -202,7 +218,7 @@ class KeyframeMap:
         views = [NeighbourView(np.linalg.inv(self.poses[j]), self.depths[j].disparity, self.depths[j].intrinsics)
                  for j in self._neighbours(kf_id)]
         weight = cand.base_weight * depth_consistency(xyz, views, self.params.consistency)
-        carved = self._carved_mask(xyz, kf_id)
+        carved = self._carved_mask(xyz, cand.cells, kf_id)
         keep = (weight >= self.params.points.min_weight) & ~carved
         cells = cand.cells[keep]
         k = content.codes.shape[2]
@@ -210,14 +226,20 @@ class KeyframeMap:
                                 content.colours.reshape(-1, 3)[cells])
         return points, cand.cells[carved]
 
-    def _carved_mask(self, xyz: np.ndarray, kf_id: int) -> np.ndarray:
+    def _carved_mask(self, xyz: np.ndarray, cells: np.ndarray, kf_id: int) -> np.ndarray:
+        """(C,) bool: which of a keyframe's candidate points (world xyz (C, 3), flat cells (C,)) are carved."""
         views = [self._carve_view(j) for j in self._later(kf_id)]
-        return free_space_votes(xyz, views, self.params.carving).carved
+        codes = None
+        if self.params.carving.semantic:
+            own = self._fused_space_codes(kf_id)
+            codes = own.reshape(-1, own.shape[2])[cells]
+        return free_space_votes(xyz, views, self.params.carving, codes).carved
 
     def _carving_changed(self, kf_id: int) -> bool:
         """Whether a fused keyframe's carved cells differ now from when it was fused (its own pose/depth unchanged)."""
         cand = candidate_points(self.depths[kf_id], self.params.points)
-        carved = cand.cells[self._carved_mask(world_points(cand.points_cam, self.poses[kf_id]), kf_id)]
+        xyz = world_points(cand.points_cam, self.poses[kf_id])
+        carved = cand.cells[self._carved_mask(xyz, cand.cells, kf_id)]
         return not np.array_equal(carved, self._carved.get(kf_id))
 
     def _ensure_voxel_size(self, first_kf: int) -> None:
