@@ -52,6 +52,9 @@ class BASettings(BaseSettings):
     """ARK sigmoid temperature."""
     robust_scale: float = 0.5
     """Barron scale c in grid pixels."""
+    ark_refresh_px: float = 0.25
+    """Re-sample an edge's codes for ARK once one of its reprojections moved this far (grid px); 0 = every
+    iteration (RobustParams.ark_refresh_px)."""
     compute_dtype: Literal["float32", "float64"] = "float32"
     """Per-pixel BA arithmetic; the camera system is float64 either way (docs/BENCHMARKS.md, BA core)."""
     flow_preset: Literal["ultrafast", "fast", "medium"] = "medium"
@@ -63,7 +66,7 @@ class BASettings(BaseSettings):
         """The robust-kernel parameters of the core."""
         return RobustParams(use_ark=self.use_ark, fixed_alpha=self.fixed_alpha, alpha_static=self.alpha_static,
                             alpha_dynamic=self.alpha_dynamic, kappa=self.kappa, tau=self.tau,
-                            scale=self.robust_scale)
+                            scale=self.robust_scale, ark_refresh_px=self.ark_refresh_px)
 
     def ba_params(self, global_ba: bool = False) -> BAParams:
         """BA parameters of the frontend (or, with ``global_ba``, of the background global BA)."""
