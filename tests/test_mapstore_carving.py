@@ -354,11 +354,16 @@ def build_moved_chair_map(params: MapParams, pulled_floor: bool, versions: tuple
         codes = label_codes(cell_labels(which, labels), seed=kf)
         if bases is not None:  # code the label vectors with this version's basis: z = V (f − μ)
             codes = ((codes.astype(np.float64) - bases[version].mean) @ bases[version].components.T).astype(np.float16)
-        m.add_content(KeyframeContent(kf, kf * 1000, codes, np.zeros((H, W, 3), np.uint8), (8 * H, 8 * W), version))
-        m.set_depth(kf, KeyframeDepth(disparity, INTR))
-        m.set_pose(kf, pose)
-        m.refresh()
+        add_keyframe(m, kf, pose, disparity, codes, version)
     return m
+
+
+def add_keyframe(m: KeyframeMap, kf: int, pose: np.ndarray, disparity: np.ndarray, codes: np.ndarray,
+                 version: int) -> None:
+    m.add_content(KeyframeContent(kf, kf * 1000, codes, np.zeros((H, W, 3), np.uint8), (8 * H, 8 * W), version))
+    m.set_depth(kf, KeyframeDepth(disparity, INTR))
+    m.set_pose(kf, pose)
+    m.refresh()
 
 
 def test_the_map_drops_a_vacated_place_that_later_depths_do_not_see_through():
@@ -400,10 +405,7 @@ def build_static_chair_map(params: MapParams, bases: dict) -> KeyframeMap:
         version = int(kf >= 3)
         codes = label_codes(cell_labels(which, [CHAIR]), seed=kf).astype(np.float64)
         codes = ((codes - bases[version].mean) @ bases[version].components.T).astype(np.float16)
-        m.add_content(KeyframeContent(kf, kf * 1000, codes, np.zeros((H, W, 3), np.uint8), (8 * H, 8 * W), version))
-        m.set_depth(kf, KeyframeDepth(disparity, INTR))
-        m.set_pose(kf, pose)
-        m.refresh()
+        add_keyframe(m, kf, pose, disparity, codes, version)
     return m
 
 
