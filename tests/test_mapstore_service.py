@@ -191,3 +191,22 @@ def test_a_diverged_pose_leaves_its_camera_out_of_the_export_not_the_export(tmp_
     cams = read_colmap(tmp_path / "export" / "colmap")
     assert "000000.jpg" in cams and "000002.jpg" not in cams
     state.close()
+
+
+def test_a_batch_commits_each_message_and_fuses_once_to_the_same_map(tmp_path):
+    msgs = [m for m in stream_messages(6) if not isinstance(m, Eos)]
+    one = MapState(settings(tmp_path / "one"))
+    for msg in msgs:
+        handle(one, msg, one.cfg)
+    batched = MapState(settings(tmp_path / "batched"))
+    with batched.batch():
+        for msg in msgs:
+            handle(batched, msg, batched.cfg)
+        assert batched.map.fused().keys.size == 0  # nothing re-fused inside the batch ...
+        assert len(batched.store.load().contents) == 6  # ... but every keyframe is committed
+    a, b = one.map.fused(), batched.map.fused()
+    np.testing.assert_array_equal(a.keys, b.keys)
+    np.testing.assert_allclose(a.xyz, b.xyz, atol=1e-9)
+    np.testing.assert_allclose(a.codes, b.codes, atol=1e-5)
+    one.close()
+    batched.close()

@@ -11,7 +11,7 @@ from pydantic import ValidationError
 from .bus import Bus
 from .config import BusSettings
 from .errors import KmVipeError
-from .lifecycle import stop_on_signals, tune_malloc_for_frames, tune_malloc_for_tensors
+from .lifecycle import limit_blas_threads, stop_on_signals, tune_malloc_for_frames, tune_malloc_for_tensors
 from .logs import setup_logging
 
 log = logging.getLogger(__name__)
@@ -19,12 +19,14 @@ log = logging.getLogger(__name__)
 ServiceBody = Callable[[Bus, threading.Event], "int | object"]
 
 
-def service_main(name: str, body: ServiceBody, handles_frames: bool = False, handles_tensors: bool = False) -> int:
+def service_main(name: str, body: ServiceBody, handles_frames: bool = False, handles_tensors: bool = False,
+                 blas_threads: int | None = None) -> int:
     """Run ``body(bus, stop)`` as service ``name``; returns the process exit code (body's int, else 0).
 
     Bad settings and known errors end the process with one message and exit code 2, never a traceback.
     ``handles_frames`` tunes the allocator for frame-sized buffers (see ``tune_malloc_for_frames``),
     ``handles_tensors`` for large tensor temporaries (``tune_malloc_for_tensors``; it wins when both are set).
+    ``blas_threads`` caps numpy's BLAS pool (``limit_blas_threads``; None leaves it).
     """
     setup_logging(name)
     stop = stop_on_signals()
@@ -32,6 +34,8 @@ def service_main(name: str, body: ServiceBody, handles_frames: bool = False, han
         tune_malloc_for_frames()
     if handles_tensors:
         tune_malloc_for_tensors()
+    if blas_threads is not None:
+        limit_blas_threads(blas_threads)
     try:
         with Bus(BusSettings(), name) as bus:
             result = body(bus, stop)

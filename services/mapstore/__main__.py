@@ -10,7 +10,8 @@ from services.mapstore.service import run
 
 
 def main(argv: list[str] | None = None) -> int:
-    return service_main("mapstore", lambda bus, stop: run(MapstoreSettings(), bus, stop).close(), handles_frames=True)
+    return service_main("mapstore", lambda bus, stop: run(MapstoreSettings(), bus, stop).close(), handles_frames=True,
+                        blas_threads=1)
 
 
 if __name__ == "__main__":

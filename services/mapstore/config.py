@@ -148,6 +148,10 @@ class MapstoreSettings(BaseSettings):
     """SQLite map database; ``{stream}`` is replaced by the stream name."""
     synchronous: Literal["NORMAL", "FULL"] = "FULL"
     """FULL: an acknowledged keyframe also survives power loss; NORMAL: survives a killed process."""
+    refresh_batch: int = 32
+    """Messages already queued are committed one by one (each acknowledged as it commits) but re-fused together,
+    at most this many at a time: ba revises 25 keyframes per update and features may send several PCA bases in a
+    row, and re-fusing after each made the mapstore the busiest process of a KITTI run. 1 = after every message."""
     voxel_size: float = 0.02
     """Voxel edge: metres when voxel_mode is absolute, else a fraction of the median depth."""
     voxel_mode: Literal["absolute", "relative"] = "relative"

@@ -160,11 +160,15 @@ def run(cfg: MapstoreSettings, bus: Bus, stop: threading.Event, state: MapState 
     while not stop.is_set():
         delivery = inbox.get(POLL_S)
         if delivery is not None:
-            for key, out in handle(state, delivery.msg, cfg):
-                bus.publish(key, out)
-            msg = delivery.msg
-            if isinstance(msg, Keyframe) and msg.codes is not None and msg.pca_version not in state.bases:
-                fetch.want(msg.pca_version)
+            with state.batch():
+                for n in range(cfg.refresh_batch):
+                    if n and (delivery := inbox.get(0)) is None:
+                        break
+                    for key, out in handle(state, delivery.msg, cfg):
+                        bus.publish(key, out)
+                    msg = delivery.msg
+                    if isinstance(msg, Keyframe) and msg.codes is not None and msg.pca_version not in state.bases:
+                        fetch.want(msg.pca_version)
         fetch.run_due(bus, cfg.stream, state.bases, lambda basis: handle(state, basis, cfg))
         held = state.pending_eos
         if held is not None and (stream_complete(state) or time.monotonic() > state.eos_deadline):

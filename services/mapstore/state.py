@@ -15,7 +15,9 @@ from __future__ import annotations
 
 import logging
 import threading
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Iterator
 
 import cv2
 import numpy as np
@@ -53,6 +55,7 @@ class MapState:
             self.map.set_pose(kf_id, pose)
         self.map.refresh()
         self._index: tuple[int, int, ScoringIndex] | None = None  # (map revision, basis version, index)
+        self._deferred: bool | None = None  # None outside batch(); inside, the metric flag of the last write
         # end of stream: ba's EOS is held until its final graph has been applied (or eos_wait_s passed)
         self.final_keyframes: set[int] | None = None
         self.pending_eos = None
@@ -108,8 +111,25 @@ class MapState:
                 self.map.set_pose(kf_id, pose)
             return self._refresh(metric)
 
+    @contextmanager
+    def batch(self) -> Iterator[None]:
+        """Writes inside are committed one by one as always, but re-fused once at the end: a burst of graph
+        updates or bases costs one re-fusion of what changed, not one per message."""
+        with self.lock:
+            self._deferred = self.metric
+        try:
+            yield
+        finally:
+            with self.lock:
+                metric, self._deferred = self._deferred, None
+                self._refresh(metric)
+
     def _refresh(self, metric: bool) -> int:
-        """Re-fuse what changed (lock held); persist the voxel size once known. Returns keyframes re-fused."""
+        """Re-fuse what changed (lock held); persist the voxel size once known. Returns keyframes re-fused (0
+        inside `batch`, which re-fuses at its end)."""
+        if self._deferred is not None:
+            self._deferred = metric
+            return 0
         had_voxel = self.map.voxel_size is not None
         report = self.map.refresh()
         meta = {}
