@@ -32,3 +32,21 @@ def test_held_back_keyframes_keep_their_own_timestamps(tmp_path):
     assert [k.t_ns for k in keyframes] == [stamps[k.seq] for k in keyframes]
     assert all((k.orig_width, k.orig_height) == (512, 384) for k in keyframes)
     assert np.all(np.diff([k.seq for k in keyframes]) > 0)
+
+
+def test_a_restarted_features_process_numbers_its_bases_above_the_last_run():
+    """Consumers keep PCA bases by version: a restart must not count from 1 again (its bases would be taken for
+    the old ones). The default first version is the start time (unix s × 1000), and the fitter starts there."""
+    import time
+
+    import torch
+
+    from services.features.core.pca import PcaFitter
+
+    first = FeaturesSettings().pca_first_version
+    time.sleep(1.0)
+    again = FeaturesSettings().pca_first_version
+    assert again >= first + 1000  # room for 1000 refits per second the earlier process ran
+    params = FeaturesSettings(pca_first_version=again, pca_components=2, pca_fit_keyframes=1).params().pca
+    basis = PcaFitter(params, "test").add(torch.randn(8, 6, 6, generator=torch.Generator().manual_seed(0)))
+    assert basis is not None and basis.version == again

@@ -40,7 +40,7 @@ def features_run(stream: str = STREAM) -> FeaturesRun:
     99.9 % retention, working size = the frame size, a low keyframe threshold for that size); the outputs in publish order."""
     cfg = FeaturesSettings(stream=stream, backbone="synth-oracle", oracle_source=SOURCE, oracle_dim=16,
                            device="cpu", threads=1, scales=(1.0,), target_area=WIDTH * HEIGHT, pca_components=2,
-                           pca_fit_keyframes=1, pca_refit_below=0.999,
+                           pca_fit_keyframes=1, pca_refit_below=0.999, pca_first_version=1,
                            keyframe_threshold_grid_px=0.5)
     state = features.build_state(cfg)
     world = SynthWorld(config_from_spec(SOURCE))

@@ -1,9 +1,11 @@
 """Settings of the features service, built once from the environment (``KMVIPE_FEATURES_*``)."""
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Literal
 
+from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from ..common.errors import ConfigError
@@ -72,6 +74,11 @@ class FeaturesSettings(BaseSettings):
     (docs/BENCHMARKS.md). ba and mapstore convert codes between versions."""
     pca_refit_window: int = 5
     """A refit uses the latest this many keyframes (0 = all so far; 0.78 min on KITTI 07)."""
+    pca_first_version: int = Field(default_factory=lambda: int(time.time()) * 1000)
+    """Version number of this process's first PCA basis; each refit adds one. The default, unix seconds × 1000 at
+    start, makes a restarted features process continue above every version it published before (fewer than 1000
+    refits per second of run time): mapstore and ba keep bases by version, so a restart that counted from 1 again
+    would have its new bases taken for the old ones."""
     depth_short_side: int = DepthParams.model_short_side
 
     def oracle_params(self) -> OracleParams:
@@ -94,6 +101,7 @@ class FeaturesSettings(BaseSettings):
             ),
             pyramid=PyramidParams(scales=self.pyramid_scales(on_cuda), patch_size=patch_size),
             pca=PcaParams(n_components=self.pca_components, fit_keyframes=self.pca_fit_keyframes,
-                          refit_below=self.pca_refit_below, refit_window=self.pca_refit_window),
+                          refit_below=self.pca_refit_below, refit_window=self.pca_refit_window,
+                          first_version=self.pca_first_version),
             depth=DepthParams(model_short_side=self.depth_short_side),
         )  # fmt: skip

@@ -37,8 +37,12 @@ class PcaParams:
     basis; 0 = never: the first basis stays frozen. Consumers must translate codes between versions first."""
     refit_window: int = 5
     """A refit uses the latest this many keyframes, the triggering one included (0 = all so far)."""
+    first_version: int = 1
+    """Version of the first basis; each refit adds one."""
 
     def __post_init__(self) -> None:
+        if self.first_version < 1:
+            raise ValueError(f"first_version must be ≥ 1, got {self.first_version}")
         if self.n_components < 1 or self.fit_keyframes < 1 or self.samples_per_keyframe < 1:
             raise ValueError(f"n_components, fit_keyframes and samples_per_keyframe must be ≥ 1, got {self}")
         if not 0.0 <= self.refit_below < 1.0 or self.refit_window < 0:
@@ -177,7 +181,7 @@ class PcaFitter:
         self.basis: PcaBasis | None = None
         self.last_retention: float | None = None
         """Retention of the latest keyframe under the basis it is coded with (None before the first fit)."""
-        self._version = 0
+        self._version = params.first_version - 1
 
     @property
     def ready(self) -> bool:
