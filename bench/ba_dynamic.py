@@ -58,9 +58,8 @@ def build(args):
     gt_centre = np.stack([m[centre, centre] for m in moving_px])
     gt_block = np.stack([m.reshape(h, GRID, w, GRID).mean(axis=(1, 3)) > 0.5 for m in moving_px])
     ii, jj = synthetic.temporal_edges(args.keyframes, args.radius)
-    tg = [flow.flow_targets(frames[i].rgb, frames[j].rgb, FlowParams()) for i, j in zip(ii.tolist(), jj.tolist())]
-    problem = ba.BAProblem(ii, jj, torch.from_numpy(np.stack([t.target for t in tg])).double(),
-                           torch.from_numpy(np.stack([t.confidence for t in tg])).double(),
+    targets, confidence = flow.edge_targets([f.rgb for f in frames], list(zip(ii.tolist(), jj.tolist())), FlowParams())
+    problem = ba.BAProblem(ii, jj, torch.from_numpy(targets).double(), torch.from_numpy(confidence).double(),
                            codes=torch.from_numpy(codes).double())
     intr = grid_intrinsics(frames[0].intrinsics)
     gt = torch.from_numpy(np.stack([f.world_from_cam for f in frames]))

@@ -34,9 +34,8 @@ def _scene():
     codes = np.stack([oracle_features(f.labels[centre, centre], vectors, 0.3, rng) for f in frames])
     gt_moving = np.stack([np.isin(f.instance[centre, centre], moving) for f in frames])
     ii, jj = synthetic.temporal_edges(len(frames), 2)
-    tg = [flow.flow_targets(frames[i].rgb, frames[j].rgb, FlowParams()) for i, j in zip(ii.tolist(), jj.tolist())]
-    problem = ba.BAProblem(ii, jj, torch.from_numpy(np.stack([t.target for t in tg])).double(),
-                           torch.from_numpy(np.stack([t.confidence for t in tg])).double(),
+    targets, confidence = flow.edge_targets([f.rgb for f in frames], list(zip(ii.tolist(), jj.tolist())), FlowParams())
+    problem = ba.BAProblem(ii, jj, torch.from_numpy(targets).double(), torch.from_numpy(confidence).double(),
                            codes=torch.from_numpy(codes).double())
     intr = grid_intrinsics(frames[0].intrinsics)
     gt = torch.from_numpy(np.stack([f.world_from_cam for f in frames]))

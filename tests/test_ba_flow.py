@@ -5,7 +5,7 @@ import cv2
 import numpy as np
 import pytest
 
-from services.ba.core.flow import FlowParams, flow_targets, pair_targets, to_grey
+from services.ba.core.flow import FlowParams, edge_targets, flow_targets, pair_targets, to_grey
 
 
 def _texture(h: int, w: int, seed: int) -> np.ndarray:
@@ -77,3 +77,15 @@ def test_rgb_input_and_bad_sizes():
         flow_targets(rgb[:60], rgb[:60], FlowParams())
     with pytest.raises(ValueError):
         to_grey(rgb.astype(np.float32))
+
+
+def test_edge_targets_stack_every_edge_and_share_the_flows_of_opposite_edges():
+    base = _texture(64, 96, seed=5)
+    imgs = [base, _shift(base, 2.0, 1.0), _shift(base, 4.0, 2.0)]
+    edges = [(0, 1), (1, 0), (1, 2), (2, 0)]
+    targets, confidence = edge_targets(imgs, edges, FlowParams())
+    assert targets.shape == (4, 8, 12, 2) and confidence.shape == (4, 8, 12)
+    for e, (i, j) in enumerate(edges):
+        want = flow_targets(imgs[i], imgs[j], FlowParams())
+        np.testing.assert_allclose(targets[e], want.target, atol=1e-5)
+        np.testing.assert_allclose(confidence[e], want.confidence, atol=1e-5)

@@ -89,3 +89,14 @@ def _targets(fwd: np.ndarray, bwd: np.ndarray, params: FlowParams) -> FlowTarget
     land = np.stack([land_x, land_y], -1)
     target = (_block_mean(land, params.grid) + 0.5) / params.grid - 0.5
     return FlowTargets(target.astype(np.float32), _block_mean(conf, params.grid).astype(np.float32), fwd)
+
+
+def edge_targets(images: list[np.ndarray], edges: list[tuple[int, int]],
+                 params: FlowParams) -> tuple[np.ndarray, np.ndarray]:
+    """Grid targets ``(E, h, w, 2)`` and confidences ``(E, h, w)`` (float32) of the directed ``edges`` (i, j)
+    between working-resolution ``images``; an edge and its reverse share one pair of DIS flows."""
+    done: dict[tuple[int, int], FlowTargets] = {}
+    for i, j in edges:
+        if (i, j) not in done:
+            done[(i, j)], done[(j, i)] = pair_targets(images[i], images[j], params)
+    return (np.stack([done[e].target for e in edges]), np.stack([done[e].confidence for e in edges]))
