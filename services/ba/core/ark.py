@@ -12,10 +12,8 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import torch
-import torch.nn.functional as F
 
-# Guard for the norm product of all-zero codes.
-_TINY = 1e-12
+from services.ba.core import embedding
 
 
 class ArkCosine(NamedTuple):
@@ -38,18 +36,10 @@ def sample(codes: torch.Tensor, ii: torch.Tensor, jj: torch.Tensor, coords: torc
     if coords.shape[1:] != (2, h * w) or ii.shape != jj.shape or coords.shape[0] != ii.shape[0]:
         raise ValueError(f"coords (E, 2, {h * w}) and ii, jj (E,) expected, got {tuple(coords.shape)}, "
                          f"{tuple(ii.shape)}, {tuple(jj.shape)}")
-    # grid_sample interpolates all K channels in one pass (the gather-then-blend of embedding.bilinear_sample
-    # writes four (E, P, K) corner tensors); align_corners=True puts pixel centres at integer coordinates
-    x, y = coords[:, 0], coords[:, 1]
-    grid = torch.stack([x * (2 / max(w - 1, 1)) - 1, y * (2 / max(h - 1, 1)) - 1], -1)[:, None]
-    grid = torch.nan_to_num(grid, nan=-2.0, posinf=-2.0, neginf=-2.0).to(codes.dtype)
-    maps = codes.permute(0, 3, 1, 2).contiguous()  # (N, K, h, w): grid_sample is slower on channels-last
-    values = F.grid_sample(maps[jj], grid, mode="bilinear", padding_mode="border", align_corners=True)[:, :, 0]
-    src = maps.reshape(n, k, h * w)[ii]  # (E, K, P)
-    dot, sq_src, sq_val = (src * values).sum(1), (src * src).sum(1), (values * values).sum(1)
-    cosine = dot / (sq_src * sq_val).sqrt().clamp_min(_TINY)
-    inside = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
-    return ArkCosine(cosine.clamp(-1, 1).to(coords.dtype), inside, coords.clone())
+    values = embedding.bilinear_sample(codes, jj, coords.transpose(1, 2), derivatives=False)
+    res = embedding.embedding_residual(codes.reshape(n, h * w, k)[ii], values)
+    # coords is a fresh tensor of the caller's evaluation, never written in place: kept without a copy
+    return ArkCosine(res.cosine.to(coords.dtype), res.valid, coords)
 
 
 def refresh(cache: ArkCosine | None, codes: torch.Tensor, ii: torch.Tensor, jj: torch.Tensor,

@@ -82,6 +82,7 @@ class KeyframeMap:
         self._recheck: set[int] = set()  # keyframes whose carving may have changed
         self._carved: dict[int, np.ndarray] = {}  # per fused keyframe: (C,) int64 cells carved when it was fused
         self._unit_codes: dict[int, np.ndarray] = {}  # per keyframe: (h, w, K) unit codes in code_version (carving)
+        self._views: dict[int, CarveView] = {}  # per keyframe: itself as a carving witness (until it is touched)
         self._ready: list[int] = []  # sorted ids with content, depth and pose
         self._fused_cache: FusedVoxels | None = None
         self.revision = 0
@@ -137,6 +138,7 @@ class KeyframeMap:
             self._recheck.update(self._carved)  # carving compares codes in the fused space, which changes
         self.code_version, self._code_maps = version, dict(maps)
         self._unit_codes.clear()
+        self._views.clear()
         if self._grid is not None:
             self._grid.recode([(c, self._code_maps[v]) for c, v in self._contrib.values()],
                               maps[version].matrix.shape[0])
@@ -159,6 +161,7 @@ class KeyframeMap:
             self._ready.insert(pos, kf_id)
         elif not self._is_ready(kf_id) and present:
             self._ready.pop(pos)
+        self._views.pop(kf_id, None)
         self._dirty.add(kf_id)
         self._dirty.update(self._neighbours(kf_id))
         self._recheck.update(self._earlier(kf_id))
@@ -181,6 +184,12 @@ class KeyframeMap:
         return self._ready[after : after + self.params.carving.later_keyframes][::-1]
 
     def _carve_view(self, kf_id: int) -> CarveView:
+        """A keyframe as a carving witness; cached, as each witnesses for up to `later_keyframes` earlier ones."""
+        if kf_id not in self._views:
+            self._views[kf_id] = self._make_carve_view(kf_id)
+        return self._views[kf_id]
+
+    def _make_carve_view(self, kf_id: int) -> CarveView:
         d = self.depths[kf_id]
         reliability = None
         if d.static_weight is not None or d.confidence is not None:
