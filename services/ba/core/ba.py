@@ -89,7 +89,7 @@ def _prepare(problem: BAProblem, params: BAParams, h: int, w: int) -> _Prepared:
     e, dev = len(problem.ii), problem.targets.device
     targets = problem.targets.reshape(e, h * w, 2).transpose(1, 2).to(dtype).contiguous()
     codes = problem.codes
-    if codes is not None and not (codes.dtype in (torch.float32, torch.float64)):
+    if codes is not None and codes.dtype not in (torch.float32, torch.float64):
         codes = codes.float()  # half precision arithmetic is slow or missing on CPUs
     return _Prepared(problem.ii, problem.jj, targets, problem.confidence.reshape(e, -1).to(dtype),
                      projective.pixel_grid(h, w, dtype, dev), codes)
@@ -113,12 +113,11 @@ def _residuals(state: BAState, prep: _Prepared, params: BAParams, with_jac: bool
     embed = None
     # ARK alone samples codes through its lazy cache (_ark); the embedding term needs them at every evaluation
     if prep.codes is not None and params.lambda_embed > 0:
-        sample = embedding.bilinear_sample(prep.codes, prep.jj, rp.coords.transpose(1, 2),
-                                           derivatives=with_jac and params.lambda_embed > 0)
-        src = prep.codes.reshape(n, h * w, -1)[prep.ii]
-        raw = embedding.embedding_residual(src, sample, params.embed_form)
-        embed = embedding.EmbeddingResidual(*(None if t is None or t.dtype == torch.bool else t.to(flow.dtype)
-                                              for t in raw[:3]), raw.valid)
+        sample = embedding.bilinear_sample(prep.codes, prep.jj, rp.coords.transpose(1, 2), derivatives=with_jac)
+        raw = embedding.embedding_residual(prep.codes.reshape(n, h * w, -1)[prep.ii], sample, params.embed_form)
+        d_coords = None if raw.d_coords is None else raw.d_coords.to(flow.dtype)
+        embed = embedding.EmbeddingResidual(raw.cosine.to(flow.dtype), raw.residual.to(flow.dtype), d_coords,
+                                            raw.valid)
     # hypot, not vector_norm(dim=1): a reduction over a strided two-element axis is ~40x slower on CPU
     return _Residuals(flow, torch.hypot(flow[:, 0], flow[:, 1]), flow_w, embed, rp)
 
