@@ -40,7 +40,8 @@ def _examples() -> list[schema.Message]:
         schema.Credit("s", 9, 3, consumer="features-1"),
         schema.Keyframe("s", 4, 5, image=img, intrinsics=k, orig_width=48, orig_height=32, pca_version=1,
                         codes=np.zeros((2, 3, 32), np.float16), disparity_prior=np.ones((2, 3), np.float32)),
-        schema.FrameLite("s", 5, 6, image=img[..., 0], intrinsics=k, ref_seq=4),
+        schema.KeyframeCodes("s", 4, 7, pca_version=2, codes=np.ones((2, 3, 32), np.float16)),
+        schema.FrameLite("s", 5, 6, image=img[..., 0], intrinsics=k, ref_seq=4, realtime=True),
         schema.PcaBasis("s", 0, 0, version=1, backbone="dinov2_vits14", mean=np.zeros(8, np.float32),
                         components=np.eye(3, 8, dtype=np.float32)),
         schema.Graph("s", 4, 0, kf_seqs=np.arange(3), poses=eye, intrinsics=k, width=24, height=16,
@@ -48,6 +49,7 @@ def _examples() -> list[schema.Message]:
         schema.Poses("s", 4, 0, frame_seqs=np.arange(3), stamps_ns=np.arange(3) * 10, poses=eye, final=True),
         schema.Intrinsics("s", 4, 0, intrinsics=k, width=24, height=16),
         schema.Eos("s", 7, 0, stage="ingest", count=8),
+        schema.Eos("s", 7, 0, stage="features", count=3, dropped=2, codes_skipped=1),
         schema.MapQuery("s", 1, 0, vectors=np.ones((2, 8), np.float32), space="x"),
     ]
 

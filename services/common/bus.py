@@ -5,10 +5,9 @@ from __future__ import annotations
 
 import json
 import logging
-import queue
 import threading
 import uuid
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass
 from typing import Callable, Iterable
 
@@ -79,28 +78,62 @@ class Delivery:
 
 
 class Inbox:
-    """A bounded queue of deliveries for a service's single-threaded loop. When full, new messages are dropped
-    and counted: with credit-based flow control it never fills in lossless operation."""
+    """A bounded queue of deliveries for a service's loop, with the drop policy of the pacing mode.
 
-    def __init__(self, maxsize: int):
-        self._queue: queue.Queue[Delivery] = queue.Queue(maxsize)
-        self.dropped = 0
+    ``lossless``: never drops; credit keeps it below ``maxsize``, and should it fill anyway it grows (counted in
+    ``overflowed``) rather than lose what upstream was promised. Real-time: when full, the oldest queued message
+    of a ``droppable`` kind (frames, never keyframes, codes, bases or EOS) makes room; if none is queued, an
+    incoming droppable message is dropped and an essential one is still queued. Drops are counted per kind.
+    """
+
+    def __init__(self, maxsize: int, lossless: bool = False, droppable: tuple[type, ...] = ()):
+        self.maxsize, self.lossless, self.droppable = maxsize, lossless, droppable
+        self._items: deque[Delivery] = deque()
+        self._ready = threading.Condition()
+        self.dropped_by_kind: Counter[str] = Counter()
+        self.overflowed = 0
+
+    @property
+    def dropped(self) -> int:
+        return sum(self.dropped_by_kind.values())
 
     def put(self, item: Delivery) -> None:
-        try:
-            self._queue.put_nowait(item)
-        except queue.Full:
-            self.dropped += 1
-            log.warning("inbox full, message dropped", extra={"key": item.key, "seq": item.msg.seq})
+        with self._ready:
+            if len(self._items) >= self.maxsize:
+                victim = self._make_room(item)
+                if victim is item:
+                    return
+            self._items.append(item)
+            self._ready.notify()
+
+    def _make_room(self, item: Delivery) -> Delivery | None:
+        """The delivery dropped to take ``item`` (``item`` itself when it is the one to go), or None."""
+        if self.lossless or not self.droppable:
+            self.overflowed += 1
+            if self.overflowed == 1 or not self.droppable:
+                log.warning("inbox over its bound; kept", extra={"key": item.key, "seq": item.msg.seq})
+            return None
+        victim = next((d for d in self._items if isinstance(d.msg, self.droppable)), None)
+        if victim is not None:
+            self._items.remove(victim)
+        elif isinstance(item.msg, self.droppable):
+            victim = item
+        else:
+            self.overflowed += 1
+            return None
+        self.dropped_by_kind[victim.msg.KIND] += 1
+        log.info("inbox full: dropped the oldest frame", extra={"key": victim.key, "seq": victim.msg.seq})
+        return victim
 
     def get(self, timeout: float) -> Delivery | None:
-        try:
-            return self._queue.get(timeout=timeout)
-        except queue.Empty:
-            return None
+        with self._ready:
+            if not self._items and not self._ready.wait_for(lambda: bool(self._items), timeout):
+                return None
+            return self._items.popleft()
 
     def qsize(self) -> int:
-        return self._queue.qsize()
+        with self._ready:
+            return len(self._items)
 
 
 class Bus:
@@ -156,9 +189,11 @@ class Bus:
 
         self._handles.append(self.session.declare_subscriber(key, _callback))
 
-    def inbox(self, subscriptions: dict[str, Iterable[type[Message]]], maxsize: int = 1024) -> Inbox:
-        """Subscribe to several keys (each with the message kinds it may carry) into one bounded inbox."""
-        box = Inbox(maxsize)
+    def inbox(self, subscriptions: dict[str, Iterable[type[Message]]], maxsize: int = 1024, lossless: bool = True,
+              droppable: tuple[type[Message], ...] = ()) -> Inbox:
+        """Subscribe to several keys (each with the message kinds it may carry) into one bounded inbox (see
+        :class:`Inbox` for what happens when it is full)."""
+        box = Inbox(maxsize, lossless, droppable)
         for key, kinds in subscriptions.items():
             self.subscribe(key, box.put, kinds)
         return box

@@ -21,9 +21,11 @@ GRAPH = "graph"
 POSE = "pose"
 INTRINSICS = "intrinsics"
 EOS = "eos"
+CODES = "codes"
+PROGRESS = "progress"
 MAP = "map"
 
-TOPICS = (FRAME, CREDIT, KEYFRAME, FRAME_LITE, PCA, GRAPH, POSE, INTRINSICS, EOS)
+TOPICS = (FRAME, CREDIT, KEYFRAME, FRAME_LITE, PCA, GRAPH, POSE, INTRINSICS, EOS, CODES, PROGRESS)
 
 _NAME = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
 

@@ -56,6 +56,7 @@ class Frame(Message):
     jpeg: Optional[bytes] = None
     intrinsics: Optional[np.ndarray] = field(default=None, metadata=arr("f8", (4,)))  # fx fy cx cy (px)
     depth: Optional[np.ndarray] = field(default=None, metadata=arr("f4", ("H", "W")))  # metres, 0 = missing
+    realtime: bool = False  # the source is paced in real time: later stages may drop frames (never keyframes)
 
     def check(self) -> None:
         if (self.image is None) == (self.jpeg is None):
@@ -68,7 +69,10 @@ class Frame(Message):
 
 @dataclass(frozen=True)
 class Credit(Message):
-    """features → ingest: ``seq`` is the highest frame seq ``consumer`` can take now."""
+    """features → ingest (on ``credit``): ``seq`` is the highest frame seq ``consumer`` can take now.
+
+    ba and mapstore → features (on ``progress``): ``seq`` is the highest frame seq ``consumer`` has handled (ba:
+    any frame; mapstore: keyframes), so features holds ingest back while the stages behind it are behind."""
 
     KIND: ClassVar[str] = "credit"
     consumer: str = ""
@@ -86,6 +90,7 @@ class Keyframe(Message):
     pca_version: int = -1  # -1: no codes (geometry only)
     codes: Optional[np.ndarray] = field(default=None, metadata=arr("f2 f4", ("h", "w", "K")))
     disparity_prior: Optional[np.ndarray] = field(default=None, metadata=arr("f4", ("h", "w")))  # 1/m, 0 = none
+    realtime: bool = False  # from the frame: the stream is paced in real time
 
     def check(self) -> None:
         h, w = self.image.shape[:2]
@@ -98,6 +103,18 @@ class Keyframe(Message):
 
 
 @dataclass(frozen=True)
+class KeyframeCodes(Message):
+    """features → ba, mapstore: the DINO codes of keyframe ``seq``, sent once the backbone is done with it.
+
+    Keyframes leave features with their geometry at once (``Keyframe`` with ``pca_version`` -1); the codes follow
+    in this message, so tracking and mapping never wait for the backbone."""
+
+    KIND: ClassVar[str] = "codes"
+    pca_version: int
+    codes: np.ndarray = field(metadata=arr("f2 f4", ("h", "w", "K")))
+
+
+@dataclass(frozen=True)
 class FrameLite(Message):
     """features → ba: a non-keyframe as a small grey image, for motion-only pose filling."""
 
@@ -105,6 +122,7 @@ class FrameLite(Message):
     image: np.ndarray = field(metadata=arr("u1", (None, None)))
     intrinsics: np.ndarray = field(metadata=arr("f8", (4,)))  # for this small image
     ref_seq: int = -1  # the last keyframe before it
+    realtime: bool = False  # from the frame: the stream is paced in real time
 
 
 @dataclass(frozen=True)
@@ -167,6 +185,8 @@ class Eos(Message):
     stage: str
     count: int = 0  # messages of its main kind that stage published
     reason: str = "end"  # "end" | "error" | "stopped"
+    dropped: int = 0  # messages this stage dropped by its real-time policy (never keyframes, codes, bases, EOS)
+    codes_skipped: int = 0  # features, real-time: keyframes the backbone skipped as stale (no codes sent)
 
 
 # --- mapstore queries (``kmvipe/<s>/map/<verb>``: the request is the query payload, the answer the reply) ---
@@ -243,7 +263,7 @@ class MapStats(Message):
 MESSAGES: dict[str, type[Message]] = {
     cls.KIND: cls
     for cls in (
-        Frame, Credit, Keyframe, FrameLite, PcaBasis, Graph, Poses, Intrinsics, Eos,
+        Frame, Credit, Keyframe, KeyframeCodes, FrameLite, PcaBasis, Graph, Poses, Intrinsics, Eos,
         MapQuery, MapAnswer, MapSegment, MapChunk, MapStats,
     )
 }
