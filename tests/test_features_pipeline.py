@@ -38,11 +38,13 @@ def test_stream_of_frames_gives_keyframes_lites_codes_and_sensor_disparity(store
     for i in range(cfg.n_frames):
         f = world.render(i)
         out = core.process(i, f.rgb, hint=Intrinsics(*f.intrinsics), sensor_depth=f.depth)
-        outs.append(out)
         if isinstance(out, KeyframeOut):
+            assert out.features is None  # geometry leaves first; semantics are a step of their own
+            out = core.describe(out)
             basis, ready = queue.add(out)
             bases += [basis] if basis else []
             coded += ready
+        outs.append(out)
     last = core.promote_last()
     kfs = [o for o in outs if isinstance(o, KeyframeOut)]
     lites = [o for o in outs if isinstance(o, LiteOut)]

@@ -16,7 +16,7 @@ import pytest
 from services.common import keys
 from services.common.bus import Bus
 from services.common.config import BusSettings
-from services.common.schema import Eos, Frame, Keyframe, Message, PcaBasis, decode
+from services.common.schema import Eos, Frame, Keyframe, KeyframeCodes, Message, PcaBasis, decode
 from services.features import service as features
 from services.features.config import FeaturesSettings
 from services.synth import SynthWorld
@@ -69,14 +69,19 @@ def stream_run() -> FeaturesRun:
 def test_the_stream_refits_and_every_keyframe_names_a_published_version(stream_run):
     bases = [m for m in stream_run.outputs if isinstance(m, PcaBasis)]
     kfs = [m for m in stream_run.outputs if isinstance(m, Keyframe)]
+    codes = [m for m in stream_run.outputs if isinstance(m, KeyframeCodes)]
     assert [b.version for b in bases] == list(range(1, len(bases) + 1)) and len(bases) >= 4
-    assert {k.pca_version for k in kfs} <= {b.version for b in bases}
+    assert all(k.codes is None and k.pca_version == -1 for k in kfs)  # geometry first
+    assert [c.seq for c in codes] == [k.seq for k in kfs]  # then every keyframe's codes, in order
+    for c in codes:  # each names a version whose basis went out before it
+        before = stream_run.outputs[:stream_run.outputs.index(c)]
+        assert c.pca_version in {b.version for b in before if isinstance(b, PcaBasis)}
     assert sorted(stream_run.state.bases) == [b.version for b in bases]
-    assert kfs[0].codes.shape == (HEIGHT // 8, WIDTH // 8, 2)
+    assert codes[0].codes.shape == (HEIGHT // 8, WIDTH // 8, 2)
 
 
 def test_answer_pca_refuses_before_any_basis_and_bad_selectors(stream_run):
-    empty = features.FeaturesState(stream_run.state.core, stream_run.state.codes, STREAM)
+    empty = features.FeaturesState(stream_run.state.core, stream_run.state.semantics, STREAM)
     with pytest.raises(LookupError, match="no PCA basis"):
         features.answer_pca(empty, {})
     with pytest.raises(LookupError, match="no basis yet"):

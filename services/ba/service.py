@@ -1,8 +1,16 @@
-"""BA service: ``keyframe`` / ``frame_lite`` / ``pca`` / ``eos`` in; ``graph``, ``pose``, ``intrinsics`` and
-``eos`` out. One handler per message kind; ``run`` only receives, handles and publishes.
+"""BA service: ``keyframe`` / ``frame_lite`` / ``codes`` / ``pca`` / ``eos`` in; ``graph``, ``pose``,
+``intrinsics``, ``progress`` and ``eos`` out. One handler per message kind; ``run`` only receives, handles and
+publishes.
 
-At the features stage's end of stream the frontend runs its global BA and the final ``graph`` and ``pose``
-(``final=True``) go out before this stage's own ``eos``.
+Two threads, as PTAM and DSO split them: tracking (services/ba/tracking.py) poses every frame on arrival
+against the newest mapped keyframe and publishes it at once (``tracked=True``); mapping (this loop) runs the
+window BA per keyframe, revises poses, and hands tracking a new reference after each BA. Keyframes arrive
+without codes; their ``codes`` follow when features' backbone is done (the fixed kernel runs until then, ARK
+after). In real time, when keyframes queue up behind mapping the oldest is merged as a frame. Progress reports
+(highest frame seq mapping has handled) let features hold a lossless stream back while mapping is behind.
+
+At the features stage's end of stream the frontend runs its BA over the keyframes it still holds and the final
+``graph`` and ``pose`` (``final=True``) go out before this stage's own ``eos``.
 
 PCA versions: BA compares codes of different keyframes (ARK's cosine similarity, the embedding residual), so
 every code in the graph is in one version, ``BaState.pca_version`` — the newest basis seen (or, before any, the
@@ -27,13 +35,19 @@ from services.common import keys
 from services.common.bus import Bus
 from services.common.pca_codes import code_map, convert_codes
 from services.common.pca_fetch import BasisFetch
-from services.common.schema import Eos, FrameLite, Graph, Intrinsics, Keyframe, Message, PcaBasis, Poses
+from services.common.bus import Delivery, Inbox
+from services.common.lifecycle import nice_this_thread
+from services.common.schema import (Credit, Eos, FrameLite, Graph, Intrinsics, Keyframe, KeyframeCodes, Message,
+                                    PcaBasis, Poses)
 from services.ba.frontend.frontend import FrameInput, Frontend, KeyframeInput, Update
 from services.ba.frontend.graph import NativeCodes
+from services.ba.frontend.tracker import Tracker
 from services.ba.settings import BaSettings
+from services.ba.tracking import TrackingLoop
 
 log = logging.getLogger(__name__)
 POLL_S = 0.05
+PROGRESS_PERIOD_S = 0.1
 
 Outputs = list[tuple[str, Message]]
 
@@ -49,6 +63,10 @@ class BaState:
     keyframes_seen: int = 0  # keyframe messages received in this stream (taken or refused)
     rejected: Counter = field(default_factory=Counter)  # reason -> messages refused (logged, never fatal)
     pca_fetch: BasisFetch = field(default_factory=BasisFetch)  # versions asked of features' pca queryable
+    early_codes: dict[int, KeyframeCodes] = field(default_factory=dict)  # codes that came before their keyframe
+    keyframe_backlog: int = 0  # keyframes waiting in the inbox (set by the loop; real-time merging)
+    merged: int = 0  # real-time keyframes merged as frames because mapping was behind
+    dropped: int = 0  # frames the inboxes dropped by the real-time policy (set at end of stream)
 
 
 def build_state(cfg: BaSettings) -> BaState:
@@ -57,10 +75,14 @@ def build_state(cfg: BaSettings) -> BaState:
 
 
 def handle_keyframe(state: BaState, msg: Keyframe, cfg: BaSettings) -> Outputs:
-    if msg.codes is None:  # geometry still counts; without codes the window falls back to the fixed kernel
-        state.rejected["keyframe_without_codes"] += 1
-        log.warning("keyframe without codes: no adaptive kernel for it", extra={"stream": msg.stream, "seq": msg.seq})
-    native = None if msg.codes is None else NativeCodes(msg.pca_version, msg.codes)
+    if msg.realtime and state.keyframe_backlog >= cfg.realtime_keyframe_backlog and state.frontend.initialised:
+        state.merged += 1  # mapping is behind a live camera: this one is posed as a frame, not mapped
+        log.info("keyframe merged as a frame (mapping behind)", extra={"stream": msg.stream, "seq": msg.seq})
+        state.last_seq = max(state.last_seq, msg.seq)
+        return _outputs(state, msg, state.frontend.add_frame(FrameInput(msg.seq, msg.t_ns, msg.image)), final=False)
+    early = state.early_codes.pop(msg.seq, None)
+    codes, version = (msg.codes, msg.pca_version) if early is None else (early.codes, early.pca_version)
+    native = None if codes is None else NativeCodes(version, codes)
     if native is not None and state.pca_version == -1:
         state.pca_version = msg.pca_version  # no basis yet: the first codes set the version
     codes = None if native is None else _in_current_version(state, native)
@@ -72,6 +94,22 @@ def handle_keyframe(state: BaState, msg: Keyframe, cfg: BaSettings) -> Outputs:
     state.keyframes += 1
     state.last_seq = max(state.last_seq, msg.seq)
     return _outputs(state, msg, update, final=False)
+
+
+def handle_codes(state: BaState, msg: KeyframeCodes, cfg: BaSettings) -> Outputs:
+    """A keyframe's codes, after its geometry: from now on its edges use ARK (and the embedding term)."""
+    if msg.pca_version not in state.bases:
+        state.pca_fetch.want(msg.pca_version)
+    if state.pca_version == -1:
+        state.pca_version = msg.pca_version
+    graph = state.frontend.graph
+    if graph is not None and msg.seq in graph.seqs:
+        k = graph.index(msg.seq)
+        graph.native_codes[k] = NativeCodes(msg.pca_version, msg.codes)
+        graph.codes[k] = _as_tensor(_in_current_version(state, graph.native_codes[k]))
+    elif graph is None or not graph.seqs or msg.seq > graph.seqs[-1]:
+        state.early_codes[msg.seq] = msg  # its keyframe is still on the way (another key)
+    return []
 
 
 def handle_frame_lite(state: BaState, msg: FrameLite, cfg: BaSettings) -> Outputs:
@@ -123,9 +161,12 @@ def handle_eos(state: BaState, msg: Eos, cfg: BaSettings) -> Outputs:
         state.rejected["global_ba"] += 1
         outputs = []
     eos = Eos(msg.stream, max(state.last_seq, msg.seq), time.time_ns(), stage="ba", count=state.keyframes,
-              reason=msg.reason)
+              reason=msg.reason, dropped=state.dropped)
+    log.info("stream done", extra={"stream": msg.stream, "keyframes": state.keyframes, "merged": state.merged,
+                                   "dropped": state.dropped})
     state.frontend = Frontend(state.frontend.params, state.frontend.device)
-    state.keyframes, state.keyframes_seen, state.last_seq = 0, 0, -1
+    state.keyframes, state.keyframes_seen, state.last_seq, state.merged = 0, 0, -1, 0
+    state.early_codes.clear()
     return outputs + [(keys.topic(msg.stream, keys.EOS), eos)]
 
 
@@ -149,7 +190,8 @@ def _outputs(state: BaState, msg: Message, update: Update, final: bool) -> Outpu
     return out
 
 
-HANDLERS = {Keyframe: handle_keyframe, FrameLite: handle_frame_lite, PcaBasis: handle_pca, Eos: handle_eos}
+HANDLERS = {Keyframe: handle_keyframe, FrameLite: handle_frame_lite, KeyframeCodes: handle_codes, PcaBasis: handle_pca,
+            Eos: handle_eos}
 
 
 def handle(state: BaState, msg: Message, cfg: BaSettings) -> Outputs:
@@ -166,29 +208,58 @@ def handle(state: BaState, msg: Message, cfg: BaSettings) -> Outputs:
 
 
 def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None = None) -> BaState:
-    """Serve stream ``cfg.stream`` until ``stop`` is set."""
+    """Serve stream ``cfg.stream`` until ``stop`` is set: tracking on its own thread, mapping on this one."""
     state = state or build_state(cfg)
     topic = lambda name: keys.topic(cfg.stream, name)  # noqa: E731
-    inbox = bus.inbox({topic(keys.KEYFRAME): [Keyframe], topic(keys.FRAME_LITE): [FrameLite],
-                       topic(keys.PCA): [PcaBasis], topic(keys.EOS): [Eos]}, maxsize=cfg.inbox_size)
+    mapping = bus.inbox({topic(keys.PCA): [PcaBasis], topic(keys.CODES): [KeyframeCodes], topic(keys.EOS): [Eos]},
+                        maxsize=cfg.inbox_size, droppable=(FrameLite,))
+    track_box = Inbox(cfg.inbox_size, droppable=(FrameLite,))
+
+    def to_both(delivery: Delivery) -> None:  # frames and keyframes feed tracking and mapping alike
+        for box in (track_box, mapping):
+            box.lossless = not delivery.msg.realtime  # old frames are dropped only from real-time streams
+            box.put(delivery)
+
+    for name, kind in ((keys.KEYFRAME, Keyframe), (keys.FRAME_LITE, FrameLite)):
+        bus.subscribe(topic(name), to_both, [kind])
+    tracking = TrackingLoop(Tracker(cfg.frontend_params().motion, cfg.flow_params()), bus, track_box, cfg.stream,
+                            cfg.tracking_nice)
+    tracking.start()
     bus.ready()
+    nice_this_thread(cfg.mapping_nice)
     log.info("ba ready", extra={"stream": cfg.stream, "device": str(state.frontend.device)})
     eos: tuple[Eos, float] | None = None  # features' EOS waiting for the keyframes still in flight
-    while not stop.is_set():
-        delivery = inbox.get(POLL_S)
-        msg = delivery.msg if delivery is not None else None
-        if isinstance(msg, Eos) and msg.stage == "features":
-            eos, msg = (msg, time.monotonic() + cfg.eos_wait_s), None
-        if msg is not None:
-            for key, out in handle(state, msg, cfg):
-                bus.publish(key, out)
-            if isinstance(msg, Keyframe) and msg.codes is not None and msg.pca_version not in state.bases:
-                state.pca_fetch.want(msg.pca_version)
-        state.pca_fetch.run_due(bus, cfg.stream, state.bases, lambda basis: handle(state, basis, cfg))
-        if eos is not None and (_stream_complete(state, eos[0], inbox.qsize()) or time.monotonic() > eos[1]):
-            for key, out in handle(state, eos[0], cfg):
-                bus.publish(key, out)
-            eos = None
+    next_progress = 0.0
+    try:
+        while not stop.is_set():
+            if time.monotonic() >= next_progress:
+                bus.publish(topic(keys.PROGRESS), Credit(cfg.stream, state.last_seq, time.time_ns(),
+                                                         consumer=f"ba-{bus.instance}"))
+                next_progress = time.monotonic() + PROGRESS_PERIOD_S
+            delivery = mapping.get(POLL_S)
+            msg = delivery.msg if delivery is not None else None
+            if isinstance(msg, Eos) and msg.stage == "features":
+                eos, msg = (msg, time.monotonic() + cfg.eos_wait_s), None
+            if msg is not None:
+                state.keyframe_backlog = mapping.count(Keyframe)
+                for key, out in handle(state, msg, cfg):
+                    bus.publish(key, out)
+                if isinstance(msg, Keyframe):
+                    next_progress = 0.0
+                    ref = state.frontend.reference()
+                    if ref is not None:
+                        tracking.set_reference(ref)
+                if isinstance(msg, Keyframe) and msg.codes is not None and msg.pca_version not in state.bases:
+                    state.pca_fetch.want(msg.pca_version)
+            state.pca_fetch.run_due(bus, cfg.stream, state.bases, lambda basis: handle(state, basis, cfg))
+            if eos is not None and (_stream_complete(state, eos[0], mapping.qsize()) or time.monotonic() > eos[1]):
+                state.dropped = mapping.dropped + track_box.dropped
+                for key, out in handle(state, eos[0], cfg):
+                    bus.publish(key, out)
+                tracking.reset()
+                eos = None
+    finally:
+        tracking.stop()
     return state
 
 

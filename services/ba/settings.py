@@ -16,8 +16,6 @@ class BaSettings(BASettings):
 
     model_config = SettingsConfigDict(env_prefix="KMVIPE_BA_", env_file=".env", extra="ignore")
 
-    stream: str = "cam0"
-    """Stream name ``<s>`` in ``kmvipe/<s>/...``."""
     threads: int = 1
     """CPU threads for torch. One: ba shares the 2 reference cores with features, and there two threads measured
     slower than one (1.71 vs 0.49 s per iteration at 25 keyframes, docs/BENCHMARKS.md)."""
@@ -50,6 +48,15 @@ class BaSettings(BASettings):
     """Refine the focal length once the window holds this many keyframes."""
     motion_huber: float = MotionParams.huber
     """Huber threshold of motion-only alignment (grid px)."""
+    keep_keyframes: int = FrontendParams.keep_keyframes
+    """Keyframes held in memory; older ones leave with their frames (their last published poses are final)."""
+    realtime_keyframe_backlog: int = 2
+    """Real-time streams: when this many keyframes wait for mapping, the oldest is merged into the map as a
+    frame (posed, not a BA keyframe) instead of queueing without bound. Lossless streams map every keyframe."""
+    tracking_nice: int = 0
+    """Niceness of the tracking thread (Linux; per thread). Tracking comes first on a shared CPU."""
+    mapping_nice: int = 5
+    """Niceness of the mapping thread: behind tracking, ahead of the semantics backbone (features' ``semantics_nice``)."""
     eos_wait_s: float = 30.0
     """How long features' end of stream waits for keyframes it announced that have not arrived."""
     inbox_size: int = 4096
@@ -64,4 +71,4 @@ class BaSettings(BASettings):
             graph=graph, init=InitParams(min_keyframes=self.init_keyframes, min_flow=self.init_min_flow),
             motion=MotionParams(huber=self.motion_huber), ba=self.ba_params(),
             global_ba=self.ba_params(global_ba=True), flow=self.flow_params(), focal_after=self.focal_after,
-            focal_until=self.focal_until)
+            focal_until=self.focal_until, keep_keyframes=self.keep_keyframes)

@@ -135,6 +135,11 @@ class Inbox:
         with self._ready:
             return len(self._items)
 
+    def count(self, kind: type) -> int:
+        """Queued messages of ``kind``."""
+        with self._ready:
+            return sum(isinstance(d.msg, kind) for d in self._items)
+
 
 class Bus:
     """One service instance on the bus: a Zenoh session plus its liveliness token."""
@@ -145,6 +150,7 @@ class Bus:
         self.session = open_session(settings)
         self.stats = PayloadStats()
         self._publishers: dict[tuple[str, bool], zenoh.Publisher] = {}
+        self._publish_lock = threading.Lock()
         self._handles: list = []
         self._token = None
 
@@ -161,11 +167,13 @@ class Bus:
         self.put(key, encode(msg), drop_if_congested=drop_if_congested)
 
     def put(self, key: str, payload: bytes, *, drop_if_congested: bool = False) -> None:
-        pub = self._publishers.get((key, drop_if_congested))
-        if pub is None:
-            congestion = zenoh.CongestionControl.DROP if drop_if_congested else zenoh.CongestionControl.BLOCK
-            pub = self.session.declare_publisher(key, congestion_control=congestion, reliability=zenoh.Reliability.RELIABLE)
-            self._publishers[(key, drop_if_congested)] = pub
+        with self._publish_lock:  # services publish from more than one thread (ba: tracking and mapping)
+            pub = self._publishers.get((key, drop_if_congested))
+            if pub is None:
+                congestion = zenoh.CongestionControl.DROP if drop_if_congested else zenoh.CongestionControl.BLOCK
+                pub = self.session.declare_publisher(key, congestion_control=congestion,
+                                                     reliability=zenoh.Reliability.RELIABLE)
+                self._publishers[(key, drop_if_congested)] = pub
         pub.put(payload)
 
     def subscribe(self, key: str, on_message: Callable[[Delivery], None], expect: Iterable[type[Message]] = ()) -> None:

@@ -12,6 +12,10 @@ from .errors import ConfigError
 ROOT = "kmvipe"
 ALIVE = f"{ROOT}/@alive"
 
+DEFAULT_STREAM = "cam0"
+"""The stream every command and service uses unless told otherwise (``--stream``, ``KMVIPE_<SERVICE>_STREAM``):
+one default everywhere, so a publisher and the services started without settings meet on the same keys."""
+
 FRAME = "frame"
 CREDIT = "credit"
 KEYFRAME = "keyframe"

@@ -62,3 +62,16 @@ def limit_blas_threads(threads: int = 1) -> None:
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(limits=threads, user_api="blas")
+
+
+def nice_this_thread(niceness: int) -> None:
+    """Set the scheduling niceness of the calling thread (Linux schedules threads on their own; elsewhere, or
+    without the right to lower it, this logs and leaves it). Threads this one starts later inherit it."""
+    import os
+
+    if niceness == 0 or not hasattr(os, "setpriority"):
+        return
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), niceness)
+    except OSError as exc:
+        log.info("thread priority left unchanged", extra={"niceness": niceness, "error": str(exc)})

@@ -165,6 +165,7 @@ class Poses(Message):
     stamps_ns: np.ndarray = field(metadata=arr("i8", ("N",)))
     poses: np.ndarray = field(metadata=arr("f8", ("N", 4, 4)))  # world_from_cam
     final: bool = False
+    tracked: bool = False  # frame-rate tracking poses: kept until mapping publishes a revision of the frame
 
 
 @dataclass(frozen=True)
@@ -258,6 +259,7 @@ class MapStats(Message):
     backbone: str = ""
     pca_version: int = -1
     metric: bool = False
+    keyframes_without_codes: int = 0  # keyframes fused for geometry whose codes have not arrived (or never will)
 
 
 MESSAGES: dict[str, type[Message]] = {

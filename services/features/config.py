@@ -9,6 +9,7 @@ from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from ..common.errors import ConfigError
+from ..common.keys import DEFAULT_STREAM
 from .core.depth import DepthParams
 from .core.geometry import ResolutionParams
 from .core.keyframes import KeyframeParams
@@ -27,7 +28,7 @@ class FeaturesSettings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="KMVIPE_FEATURES_", env_file=".env", extra="ignore")
 
-    stream: str = "default"
+    stream: str = DEFAULT_STREAM
     """Stream name (``kmvipe/<stream>/...``)."""
     backbone: str = "dinov2-vits14-imgfocus"
     """Registry name of the DINO backbone (``kmvipe models list``), or ``synth-oracle``: the test double of
@@ -54,6 +55,18 @@ class FeaturesSettings(BaseSettings):
     """CPU threads for torch and onnxruntime (2 on the reference machine)."""
     credit_window: int = 4
     """Frames ingest may send beyond the last one processed (lossless mode)."""
+    codes_backlog: int = 3
+    """Lossless: ingest gets no credit while this many keyframes wait for the backbone (every keyframe gets codes,
+    and the queue stays bounded)."""
+    downstream_frames: int = 24
+    """Lossless: no credit while ba is this many frames (or keyframes) behind what features published."""
+    downstream_keyframes: int = 6
+    """Lossless: no credit while the mapstore is this many keyframes behind."""
+    downstream_ttl_s: float = 5.0
+    """A downstream stage silent this long no longer holds the stream back (it died; its restart catches up)."""
+    semantics_nice: int = 10
+    """Niceness of the semantics thread and its runtime's threads (Linux): on a shared CPU the order of sacrifice
+    is semantics, then mapping (ba's ``mapping_nice``), never tracking."""
     eos_wait_s: float = 10.0
     """Zenoh orders messages per key only, so ingest's EOS can overtake its last frames: the stream is finished
     once the announced number of frames has arrived, or this long after the EOS."""

@@ -1,6 +1,11 @@
-"""Features service: ``frame`` in; ``keyframe`` / ``frame_lite`` / ``pca`` / ``eos`` out; ``credit`` back to
-ingest; ``intrinsics`` from ba refine the focal-length guess. One handler per message kind; ``run`` only
-receives, handles and publishes.
+"""Features service: ``frame`` in; ``keyframe`` / ``frame_lite`` / ``codes`` / ``pca`` / ``eos`` out;
+``credit`` back to ingest; ``intrinsics`` from ba refine the focal-length guess; ``progress`` from ba and the
+mapstore hold a lossless stream back. One handler per message kind; ``run`` only receives, handles and publishes.
+
+A keyframe's geometry goes out at once (``Keyframe`` without codes); its DINO codes follow in a ``codes``
+message from the semantics thread (services/features/semantics.py), so the frame path never waits for the
+backbone. Lossless credit covers every stage: ingest gets none while the backbone, ba or the mapstore are more
+than a few messages behind; in real time nothing is held back and stale keyframes go without codes (counted).
 
 The ``pca`` key is also a queryable over every basis version published in this run (``?version=<n>``; the
 latest without a selector), so a consumer that missed one (late join, restart, lost message) can fetch it."""
@@ -9,6 +14,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 
 import cv2
@@ -21,12 +27,13 @@ from ..common.models.backbones import normalise_rgb
 from ..common.device import resolve_device
 from ..common.models.loaders import load_backbone, load_depth_model
 from ..common.models.store import ModelStore
-from ..common.schema import Credit, Eos, Frame, FrameLite, Intrinsics, Keyframe, Message, PcaBasis
+from ..common.schema import Credit, Eos, Frame, FrameLite, Intrinsics, Keyframe, KeyframeCodes, Message, PcaBasis
 from .config import FeaturesSettings
 from .core.geometry import Intrinsics as K4
 from .core.pca import PcaBasis as CoreBasis
 from .core.pipeline import CodeQueue, FeaturesCore, KeyframeOut, LiteOut
 from .oracle import ORACLE_BACKBONE, SynthOracleBackbone
+from .semantics import SemanticsWorker, load_at_niceness
 
 log = logging.getLogger(__name__)
 POLL_S = 0.05
@@ -39,23 +46,28 @@ Outputs = list[tuple[str, Message]]
 @dataclass
 class FeaturesState:
     core: FeaturesCore
-    codes: CodeQueue
+    semantics: SemanticsWorker
     stream: str
     last_seq: int = -1  # highest frame seq handled (credit is granted beyond it)
     last_keyframe_seq: int = -1
     last_frame: tuple[int, int, int] = (0, 0, 0)  # original (width, height, t_ns) of the latest frame
     frames_seen: int = 0
+    realtime: bool = False  # the stream is paced in real time (from its frames)
     pending_eos: Eos | None = None  # ingest's EOS, held until every frame it announced has arrived
     eos_deadline: float = 0.0
+    closing: Eos | None = None  # the stream ended: its EOS goes out once the semantics thread is done
     basis: CoreBasis | None = None  # the latest basis
     # every basis published in this run, by version, for the pca queryable (K x D float32: ~100 KB at K = 32,
     # D = 768, so ~5 MB for the ~50 versions of a KITTI drive)
     bases: dict[int, CoreBasis] = field(default_factory=dict)
-    published: int = 0
+    published: int = 0  # keyframes published in this stream
     bad_frames: int = 0
-    # keyframe seq -> (original width, height, t_ns): keyframes may wait for the PCA basis, so what leaves later
-    # must carry its own size and time, not those of the frame that released it
-    pending: dict[int, tuple[int, int, int]] = field(default_factory=dict)
+    dropped: int = 0  # frames the inbox dropped by the real-time policy (set at end of stream)
+    stamps: dict[int, int] = field(default_factory=dict)  # keyframe seq -> t_ns, until its codes leave
+    # downstream progress: consumer -> (highest frame seq it handled, when it said so); and what was published
+    # since, as (seq, is_keyframe), to count how far each one is behind
+    downstream: dict[str, tuple[int, float]] = field(default_factory=dict)
+    sent: deque = field(default_factory=deque)
 
 
 def build_state(cfg: FeaturesSettings) -> FeaturesState:
@@ -64,13 +76,16 @@ def build_state(cfg: FeaturesSettings) -> FeaturesState:
     store = ModelStore(cfg.models_dir)
     if cfg.backbone == ORACLE_BACKBONE:  # test double: exact synthetic-world labels instead of a model
         backbone = SynthOracleBackbone(cfg.oracle_params())
-    else:
-        backbone = load_backbone(cfg.backbone, store, cfg.device, cfg.runtime, cfg.threads, cfg.half)
+    else:  # loaded at the semantics thread's priority, so the runtime's own threads run at it too
+        backbone = load_at_niceness(
+            lambda: load_backbone(cfg.backbone, store, cfg.device, cfg.runtime, cfg.threads, cfg.half),
+            cfg.semantics_nice)
     depth = load_depth_model(cfg.depth_model, store, cfg.device, cfg.half) if cfg.depth_model else None
     device = resolve_device(cfg.device)
     core = FeaturesCore(cfg.params(getattr(backbone, "patch_size", 14), device.type == "cuda"), backbone,
                         lambda image: normalise_rgb(image, device), depth)
-    return FeaturesState(core, CodeQueue(core.params.pca, backbone.output_space), cfg.stream)
+    semantics = SemanticsWorker(core, CodeQueue(core.params.pca, backbone.output_space), cfg.semantics_nice)
+    return FeaturesState(core, semantics, cfg.stream)
 
 
 def decode_image(msg: Frame) -> np.ndarray:
@@ -94,6 +109,7 @@ def handle_frame(state: FeaturesState, msg: Frame, cfg: FeaturesSettings) -> Out
 def _frame(state: FeaturesState, msg: Frame, cfg: FeaturesSettings) -> Outputs:
     state.last_seq = max(state.last_seq, msg.seq)
     state.last_frame = (msg.width, msg.height, msg.t_ns)
+    state.realtime = msg.realtime
     try:
         image = decode_image(msg)
     except ValueError as exc:
@@ -101,22 +117,26 @@ def _frame(state: FeaturesState, msg: Frame, cfg: FeaturesSettings) -> Outputs:
         log.warning("corrupt frame skipped", extra={"stream": msg.stream, "seq": msg.seq, "error": str(exc)})
         return []
     hint = K4(*map(float, msg.intrinsics)) if msg.intrinsics is not None else None
-    _announce_frame(state, msg.seq)
     out = state.core.process(msg.seq, image, hint, None if msg.depth is None else np.asarray(msg.depth))
     if isinstance(out, LiteOut):
         lite = FrameLite(msg.stream, msg.seq, msg.t_ns, image=out.grey, intrinsics=np.array(out.intrinsics, np.float64),
-                         ref_seq=state.last_keyframe_seq)
+                         ref_seq=state.last_keyframe_seq, realtime=msg.realtime)
+        state.sent.append((msg.seq, False))
         return [(keys.topic(msg.stream, keys.FRAME_LITE), lite)]
     state.last_keyframe_seq = out.seq
-    state.pending[out.seq] = (msg.width, msg.height, msg.t_ns)
-    return _coded(state, msg.stream, *state.codes.add(out))
+    return _keyframe(state, msg.stream, out, msg.width, msg.height, msg.t_ns)
 
 
-def _announce_frame(state: FeaturesState, seq: int) -> None:
-    """Tell a frame-aware backbone (the synthetic oracle) which frame it is about to see."""
-    set_frame = getattr(state.core.backbone, "set_frame", None)
-    if set_frame is not None:
-        set_frame(seq)
+def _keyframe(state: FeaturesState, stream: str, kf: KeyframeOut, width: int, height: int, t_ns: int) -> Outputs:
+    """The keyframe's geometry now; its codes once the semantics thread has described it."""
+    disparity = None if kf.disparity is None else kf.disparity.astype(np.float32)
+    message = Keyframe(stream, kf.seq, t_ns, image=kf.image, intrinsics=np.array(kf.intrinsics, np.float64),
+                       orig_width=width, orig_height=height, disparity_prior=disparity, realtime=state.realtime)
+    state.published += 1
+    state.sent.append((kf.seq, True))
+    state.stamps[kf.seq] = t_ns
+    state.semantics.submit(kf, state.realtime)
+    return [(keys.topic(stream, keys.KEYFRAME), message)] + coded_outputs(state)
 
 
 def handle_intrinsics(state: FeaturesState, msg: Intrinsics, cfg: FeaturesSettings) -> Outputs:
@@ -144,37 +164,73 @@ def overdue_eos(state: FeaturesState) -> Outputs:
 
 
 def _finish(state: FeaturesState, msg: Eos) -> Outputs:
-    """The last frame becomes a keyframe, pending keyframes are coded, and the EOS goes on."""
+    """The last frame becomes a keyframe, the semantics thread finishes its queue, then the EOS goes on."""
     state.pending_eos = None
     outputs: Outputs = []
-    if state.core.last_lite is not None:
-        _announce_frame(state, state.core.last_lite[1])
     last = state.core.promote_last()
     if last is not None:
-        state.pending[last.seq] = state.last_frame
-        outputs += _coded(state, msg.stream, *state.codes.add(last))
-    outputs += _coded(state, msg.stream, *state.codes.flush())
-    eos = Eos(msg.stream, msg.seq, time.time_ns(), stage="features", count=state.published, reason=msg.reason)
-    state.frames_seen = 0  # a new stream may follow on the same key
+        width, height, t_ns = state.last_frame
+        outputs += _keyframe(state, msg.stream, last, width, height, t_ns)
+    state.semantics.flush()
+    state.closing = msg
+    return outputs + closing_outputs(state)
+
+
+def closing_outputs(state: FeaturesState) -> Outputs:
+    """Codes ready now and, once the semantics thread is idle after the end of stream, this stage's EOS."""
+    outputs = coded_outputs(state)
+    msg = state.closing
+    if msg is None or not state.semantics.idle():
+        return outputs
+    outputs += coded_outputs(state)  # what finished between the first look and the idle check
+    eos = Eos(msg.stream, msg.seq, time.time_ns(), stage="features", count=state.published, reason=msg.reason,
+              dropped=state.dropped, codes_skipped=state.semantics.skipped)
+    state.frames_seen, state.published, state.closing = 0, 0, None  # a new stream may follow on the same key
+    state.semantics.skipped = 0
+    state.sent.clear()
     return outputs + [(keys.topic(msg.stream, keys.EOS), eos)]
 
 
-def _coded(state: FeaturesState, stream: str, basis: CoreBasis | None,
-           ready: list[tuple[KeyframeOut, np.ndarray]]) -> Outputs:
+def coded_outputs(state: FeaturesState) -> Outputs:
+    """``pca`` (a new basis first) and ``codes`` messages for what the semantics thread has finished."""
     outputs: Outputs = []
-    if basis is not None:
-        state.basis = basis
-        state.bases[basis.version] = basis
-        outputs.append((keys.topic(stream, keys.PCA), pca_message(stream, basis, ready[0][0].seq if ready else 0)))
-    for kf, codes in ready:
-        w, h, t_ns = state.pending.pop(kf.seq)
-        disparity = None if kf.disparity is None else kf.disparity.astype(np.float32)
-        outputs.append((keys.topic(stream, keys.KEYFRAME), Keyframe(
-            stream, kf.seq, t_ns, image=kf.image, intrinsics=np.array(kf.intrinsics, np.float64), orig_width=w,
-            orig_height=h, pca_version=state.basis.version, codes=codes, disparity_prior=disparity)))
-        state.published += 1
-        log.debug("keyframe", extra={"stream": stream, "seq": kf.seq, **{k: round(v, 3) for k, v in kf.seconds.items()}})
+    for basis, ready in state.semantics.take():
+        if basis is not None:
+            state.basis = basis
+            state.bases[basis.version] = basis
+            outputs.append((keys.topic(state.stream, keys.PCA), pca_message(state.stream, basis, ready[0][0].seq if ready else 0)))
+        for kf, codes in ready:
+            t_ns = state.stamps.pop(kf.seq, 0)
+            outputs.append((keys.topic(state.stream, keys.CODES), KeyframeCodes(
+                state.stream, kf.seq, t_ns, pca_version=state.basis.version, codes=codes)))
+            log.debug("keyframe codes", extra={"stream": state.stream, "seq": kf.seq,
+                                               **{k: round(v, 3) for k, v in kf.seconds.items()}})
     return outputs
+
+
+def credit_limit(state: FeaturesState, cfg: FeaturesSettings, now: float) -> int:
+    """Highest frame seq ingest may send. In lossless mode nothing beyond what is handled while the backbone or
+    a live downstream stage (ba, mapstore: their ``progress``) is too far behind; in real time, no hold."""
+    hold = state.last_seq
+    if state.realtime:
+        return hold + cfg.credit_window
+    if state.semantics.backlog() >= cfg.codes_backlog:
+        return hold
+    for consumer, (seq, seen) in list(state.downstream.items()):
+        if now - seen > cfg.downstream_ttl_s:
+            continue
+        keyframes_only = consumer.startswith("mapstore")
+        behind = sum(1 for s, is_kf in state.sent if s > seq and (is_kf or not keyframes_only))
+        if behind >= (cfg.downstream_keyframes if keyframes_only else cfg.downstream_frames):
+            return hold
+    while state.sent and len(state.sent) > 4 * cfg.downstream_frames:  # older entries no longer count
+        state.sent.popleft()
+    return hold + cfg.credit_window
+
+
+def on_progress(state: FeaturesState, msg: Credit) -> None:
+    """A downstream stage's progress report (Zenoh thread: one dict assignment)."""
+    state.downstream[msg.consumer] = (msg.seq, time.monotonic())
 
 
 def pca_message(stream: str, basis: CoreBasis, seq: int = 0) -> PcaBasis:
@@ -190,30 +246,37 @@ def run(cfg: FeaturesSettings, bus: Bus, stop: threading.Event, state: FeaturesS
     state = state or build_state(cfg)
     topic = lambda name: keys.topic(cfg.stream, name)  # noqa: E731
     inbox = bus.inbox({topic(keys.FRAME): [Frame], topic(keys.INTRINSICS): [Intrinsics], topic(keys.EOS): [Eos]},
-                      maxsize=4 * cfg.credit_window + 16)
+                      maxsize=4 * cfg.credit_window + 16, droppable=(Frame,))
+    bus.subscribe(topic(keys.PROGRESS), lambda d: on_progress(state, d.msg), [Credit])
     # late joiners (a restarted mapstore) ask for the current basis, consumers that missed one for its version
     bus.serve(topic(keys.PCA), lambda key, params, payload: answer_pca(state, params))
+    state.semantics.start()
     bus.ready()
     log.info("features ready", extra={"stream": cfg.stream, "backbone": cfg.backbone})
     next_credit = 0.0
-    while not stop.is_set():
-        if time.monotonic() >= next_credit:  # credit doubles as a heartbeat, so ingest knows we are alive
-            bus.publish(topic(keys.CREDIT), Credit(cfg.stream, state.last_seq + cfg.credit_window, time.time_ns(),
-                                                   consumer=f"features-{bus.instance}"))
-            next_credit = time.monotonic() + CREDIT_PERIOD_S
-        delivery = inbox.get(POLL_S)
-        if delivery is None:
-            for key, out in overdue_eos(state):
+    try:
+        while not stop.is_set():
+            now = time.monotonic()
+            if now >= next_credit:  # credit doubles as a heartbeat, so ingest knows we are alive
+                bus.publish(topic(keys.CREDIT), Credit(cfg.stream, credit_limit(state, cfg, now), time.time_ns(),
+                                                       consumer=f"features-{bus.instance}"))
+                next_credit = now + CREDIT_PERIOD_S
+            delivery = inbox.get(POLL_S)
+            outputs = closing_outputs(state)
+            if delivery is None:
+                outputs += overdue_eos(state)
+            else:
+                inbox.lossless = not getattr(delivery.msg, "realtime", not inbox.lossless)
+                state.dropped = inbox.dropped
+                try:
+                    outputs += HANDLERS[type(delivery.msg)](state, delivery.msg, cfg)
+                except (ValueError, RuntimeError):  # one bad frame must not end the stream
+                    log.exception("message failed", extra={"stream": cfg.stream, "seq": delivery.msg.seq})
+                next_credit = 0.0  # grant the next frame at once
+            for key, out in outputs:
                 bus.publish(key, out)
-            continue
-        try:
-            outputs = HANDLERS[type(delivery.msg)](state, delivery.msg, cfg)
-        except (ValueError, RuntimeError) as exc:  # one bad frame must not end the stream
-            log.exception("message failed", extra={"stream": cfg.stream, "seq": delivery.msg.seq})
-            outputs = []
-        for key, out in outputs:
-            bus.publish(key, out)
-        next_credit = 0.0  # grant the next frame at once
+    finally:
+        state.semantics.stop()
     return state
 
 

@@ -25,12 +25,14 @@ def frame_message(cfg: IngestSettings, seq: int, item: SourceFrame) -> Frame:
     h, w = item.rgb.shape[:2]
     intrinsics = np.asarray(cfg.intrinsics, np.float64) if cfg.intrinsics else None
     depth = item.depth if cfg.use_depth else None
+    realtime = cfg.pacing == "realtime"
     if cfg.encoding == "jpeg":
         ok, buf = cv2.imencode(".jpg", cv2.cvtColor(item.rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, cfg.jpeg_quality])
         if not ok:
             raise ValueError("JPEG encoding failed")
-        return Frame(cfg.stream, seq, item.t_ns, w, h, jpeg=buf.tobytes(), intrinsics=intrinsics, depth=depth)
-    return Frame(cfg.stream, seq, item.t_ns, w, h, image=item.rgb, intrinsics=intrinsics, depth=depth)
+        return Frame(cfg.stream, seq, item.t_ns, w, h, jpeg=buf.tobytes(), intrinsics=intrinsics, depth=depth,
+                     realtime=realtime)
+    return Frame(cfg.stream, seq, item.t_ns, w, h, image=item.rgb, intrinsics=intrinsics, depth=depth, realtime=realtime)
 
 
 class CreditGate:
@@ -107,7 +109,8 @@ def run(cfg: IngestSettings, bus: Bus, stop: threading.Event, source: Source | N
         if cfg.max_frames and counters.sent >= cfg.max_frames:
             break
 
-    bus.publish(keys.topic(cfg.stream, keys.EOS), Eos(cfg.stream, seq, time.time_ns(), stage="ingest", count=counters.sent, reason=reason))
+    bus.publish(keys.topic(cfg.stream, keys.EOS), Eos(cfg.stream, seq, time.time_ns(), stage="ingest", count=counters.sent, reason=reason,
+                                                         dropped=counters.dropped))
     log.info("end of stream", extra={"stream": cfg.stream, "reason": reason, **counters.__dict__})
     return counters
 

@@ -112,6 +112,14 @@ class FramePoses:
     def anchored_to(self, anchors: set[int]) -> list[int]:
         return [s for s, f in self.frames.items() if f.anchor in anchors]
 
+    def drop_before(self, kf_seq: int) -> int:
+        """Forget every frame older than keyframe ``kf_seq`` (their keyframes left the graph; the poses last
+        published for them are final). Returns how many were dropped."""
+        old = [s for s in self.frames if s < kf_seq]
+        for s in old:
+            del self.frames[s]
+        return len(old)
+
     def forget_targets(self, kf_seq: int) -> None:
         """A keyframe left the graph: targets from it are stale, and frames anchored to it are re-aligned."""
         for f in self.frames.values():

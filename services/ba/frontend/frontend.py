@@ -4,8 +4,12 @@ Per keyframe: before the map exists, keyframes are collected until the first and
 a two-view start (essential matrix + triangulation) seeds poses and disparities and a BA refines them. After
 that each new keyframe is aligned motion-only to the previous one, gets temporal and proximity edges, and a
 few BA iterations run over the sliding window (the oldest window pose is the gauge). A redundant second-newest
-keyframe is turned back into a frame. Frames are aligned motion-only to their two bracketing keyframes. At
-end of stream a global BA runs over all keyframes and every frame is aligned again.
+keyframe is turned back into a frame. Frames are aligned motion-only to their two bracketing keyframes.
+
+Memory is bounded by the window, not by the stream: once more than ``keep_keyframes`` keyframes are held, the
+oldest leaves the graph with the frames before it (the poses last published for them are final; the mapstore
+keeps their geometry). At end of stream a BA over the keyframes still held runs and their frames are aligned
+again, so end-of-stream work does not grow with the stream either.
 """
 from __future__ import annotations
 
@@ -22,6 +26,7 @@ from services.ba.frontend import edges, init, motion
 from services.ba.frontend.frames import FramePoses, FrameRecord
 from services.ba.frontend.graph import GRID, KeyframeGraph, NativeCodes, grid_intrinsics, working_intrinsics
 from services.ba.frontend.params import FrontendParams
+from services.ba.frontend.tracker import Reference
 
 logger = logging.getLogger(__name__)
 
@@ -105,7 +110,24 @@ class Frontend:
         removed = self._remove_redundant()
         if removed is not None:
             updated = {g.index(s) for s in removed if s in g.seqs}
-        return self._update(sorted(updated))
+        update = self._update(sorted(updated))
+        self._retire()
+        return update
+
+    def _retire(self) -> None:
+        """Drop the oldest keyframes beyond ``keep_keyframes`` with the frames before the new oldest one."""
+        g = self.graph
+        while len(g) > self.params.keep_keyframes:
+            g.remove(0)
+        self.frames.drop_before(g.seqs[0])
+
+    def reference(self) -> Reference | None:
+        """Snapshot of the newest keyframe for the tracker (None before the map starts)."""
+        g = self.graph
+        if g is None or not self.initialised or len(g) == 0:
+            return None
+        return Reference(g.seqs[-1], g.stamps[-1], g.poses[-1].clone(), g.disparity[-1].clone(),
+                         g.intrinsics.clone(), g.images[-1])
 
     def add_frame(self, frame: FrameInput) -> Update:
         image = core_flow.to_grey(np.asarray(frame.image))
@@ -118,7 +140,7 @@ class Frontend:
         return Update(poses=self._pose_update([frame.seq]))
 
     def finish(self) -> Update:
-        """End of stream: global BA over all keyframes, every frame aligned again; the final state."""
+        """End of stream: BA over every keyframe still held, their frames aligned again; the final state."""
         g = self.graph
         if g is None or len(g) == 0:
             return Update()

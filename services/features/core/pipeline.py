@@ -1,8 +1,9 @@
 """The features pipeline as pure state: one frame in, a keyframe or a lite frame out (no transport).
 
-Per frame: resize to the working size, DIS flow against the last keyframe; keyframes also get multi-scale
-DINO features, a depth prior and (once the PCA basis is frozen) 1/8-grid codes. Keyframes that arrive
-before the basis exists wait in :class:`CodeQueue` and leave together with the basis.
+Per frame: resize to the working size, DIS flow against the last keyframe; keyframes also get a depth prior.
+That is the geometry, and it leaves at once. Semantics are a separate step on the keyframe
+(:meth:`FeaturesCore.describe`: multi-scale DINO features), which the service runs off the frame path; codes
+are made by :class:`CodeQueue` once the PCA basis exists (keyframes described before that wait in it).
 """
 from __future__ import annotations
 
@@ -39,8 +40,8 @@ class KeyframeOut(NamedTuple):
     """(H, W, 3) uint8 RGB working image."""
     intrinsics: Intrinsics
     """At working resolution."""
-    features: torch.Tensor
-    """(C, H/8, W/8) float32 unit-norm blended features."""
+    features: torch.Tensor | None
+    """(C, H/8, W/8) float32 unit-norm blended features; None until :meth:`FeaturesCore.describe`."""
     disparity: np.ndarray | None
     """(H/8, W/8) float32 1/m prior, 0 = unknown; None without a depth source."""
     seconds: dict[str, float]
@@ -135,19 +136,23 @@ class FeaturesCore:
         return LiteOut(seq, small, k_small, motion, timing)
 
     def _keyframe(self, seq: int, work: np.ndarray, k_work: Intrinsics, depth: np.ndarray | None, timing: dict):
-        x = self.normalise(work)
-        pyr = multiscale_features(x, self.backbone, self.params.pyramid)
-        timing.update({f"scale_{s:g}": t for s, t in pyr.seconds_per_scale.items()})
         t0 = time.perf_counter()
         disparity = None
         if depth is not None:
             disparity = sensor_disparity(depth, work.shape[:2], self.params.depth)
         elif self.depth_model is not None:
             patch = int(getattr(self.depth_model, "patch_size", 14))
-            disparity = model_disparity(x, self.depth_model, patch, self.params.depth)
+            disparity = model_disparity(self.normalise(work), self.depth_model, patch, self.params.depth)
         timing["depth"] = time.perf_counter() - t0
         self.n_keyframes += 1
-        return KeyframeOut(seq, work, k_work, pyr.features, disparity, timing)
+        return KeyframeOut(seq, work, k_work, None, disparity, timing)
+
+    def describe(self, kf: KeyframeOut) -> KeyframeOut:
+        """``kf`` with its multi-scale DINO features (the slow step; it touches no state of the frame path, so
+        it may run on another thread than :meth:`process`)."""
+        pyr = multiscale_features(self.normalise(kf.image), self.backbone, self.params.pyramid)
+        seconds = dict(kf.seconds) | {f"scale_{s:g}": t for s, t in pyr.seconds_per_scale.items()}
+        return kf._replace(features=pyr.features, seconds=seconds)
 
 
 class CodeQueue:

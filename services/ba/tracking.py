@@ -1,0 +1,85 @@
+"""The tracking thread of the ba service: every frame (and keyframe) posed on arrival, published at once.
+
+It has its own inbox, so a frame never waits behind a keyframe's window BA; the mapping loop hands it a new
+reference keyframe after each BA (:meth:`TrackingLoop.set_reference`). Poses it publishes carry
+``tracked=True``: consumers keep them until mapping publishes a revision of the same frame.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+import numpy as np
+
+from services.common import keys
+from services.common.bus import Bus, Inbox
+from services.common.lifecycle import nice_this_thread
+from services.common.schema import Eos, FrameLite, Keyframe, Poses
+from services.ba.frontend.tracker import Reference, Tracker
+
+log = logging.getLogger(__name__)
+POLL_S = 0.05
+
+
+class TrackingLoop:
+    """Runs :class:`Tracker` on a thread over ``inbox`` (frame_lite and keyframe messages of one stream)."""
+
+    def __init__(self, tracker: Tracker, bus: Bus, inbox: Inbox, stream: str, niceness: int = 0):
+        self.tracker, self.bus, self.inbox, self.stream, self.niceness = tracker, bus, inbox, stream, niceness
+        self._lock = threading.Lock()
+        self._pending_ref: Reference | None = None
+        self._reset = False
+        self.tracked = 0  # frames posed by tracking in this stream
+        self.last_seq = -1  # highest seq handled (for progress reports)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="tracking", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+
+    def set_reference(self, ref: Reference) -> None:
+        """Called by the mapping loop: track against ``ref`` from the next frame on."""
+        with self._lock:
+            self._pending_ref = ref
+
+    def reset(self) -> None:
+        """End of stream: the next stream starts without a map."""
+        with self._lock:
+            self._pending_ref, self._reset = None, True
+
+    def _run(self) -> None:
+        nice_this_thread(self.niceness)
+        while not self._stop.is_set():
+            delivery = self.inbox.get(POLL_S)
+            with self._lock:
+                if self._reset:
+                    self.tracker.reset()
+                    self.tracked, self._reset = 0, False
+                ref, self._pending_ref = self._pending_ref, None
+            if ref is not None:
+                self.tracker.set_reference(ref)
+            if delivery is None or isinstance(delivery.msg, Eos):
+                continue
+            try:
+                self._track(delivery.msg)
+            except (ValueError, RuntimeError) as exc:  # one bad frame never stops tracking
+                log.warning("frame not tracked", extra={"stream": self.stream, "seq": delivery.msg.seq,
+                                                        "error": str(exc)})
+
+    def _track(self, msg: FrameLite | Keyframe) -> None:
+        self.last_seq = max(self.last_seq, msg.seq)
+        out = self.tracker.track(msg.seq, msg.t_ns, msg.image)
+        if out is None:
+            return
+        self.tracked += 1
+        pose = out.pose.detach().cpu().numpy().astype(np.float64)[None]
+        self.bus.publish(keys.topic(self.stream, keys.POSE), Poses(
+            self.stream, msg.seq, time.time_ns(), frame_seqs=np.array([msg.seq], np.int64),
+            stamps_ns=np.array([msg.t_ns], np.int64), poses=pose, tracked=True))
+        if not out.ok:
+            log.info("frame kept its predicted pose (weak flow)", extra={"stream": self.stream, "seq": msg.seq})

@@ -1,0 +1,66 @@
+"""The frame-rate tracker on the synthetic world: a reference keyframe with its exact pose and depth, frames
+after it tracked at the half size frames arrive in; poses against the exact trajectory."""
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from services.ba.core import se3
+from services.ba.core.params import FlowParams
+from services.ba.frontend.graph import GRID, grid_intrinsics
+from services.ba.frontend.params import MotionParams
+from services.ba.frontend.tracker import Reference, Tracker
+
+synth = pytest.importorskip("services.synth")
+
+
+def _grey(rgb: np.ndarray, half: bool) -> np.ndarray:
+    grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+    return cv2.resize(grey, (grey.shape[1] // 2, grey.shape[0] // 2), interpolation=cv2.INTER_AREA) if half else grey
+
+
+def _reference(world, i: int) -> Reference:
+    f = world.render(i)
+    depth = cv2.resize(f.depth, (f.depth.shape[1] // GRID, f.depth.shape[0] // GRID), interpolation=cv2.INTER_AREA)
+    return Reference(i, f.t_ns, torch.from_numpy(world.poses[i]).double(), torch.from_numpy(1.0 / depth).double(),
+                     grid_intrinsics(f.intrinsics), _grey(f.rgb, half=False))
+
+
+def _errors(pose: torch.Tensor, truth: np.ndarray) -> tuple[float, float]:
+    t = torch.from_numpy(truth)
+    rot = math.degrees(float(se3.so3_log(pose[:3, :3].T @ t[:3, :3]).norm()))
+    return float((pose[:3, 3] - t[:3, 3]).norm()), rot
+
+
+def test_frames_after_a_reference_are_tracked_to_the_exact_trajectory():
+    world = synth.SynthWorld(synth.SynthConfig(n_frames=60, width=512, height=384))
+    tracker = Tracker(MotionParams(), FlowParams())
+    assert tracker.track(1, 0, _grey(world.render(1).rgb, half=True)) is None  # no map yet: no pose
+    tracker.set_reference(_reference(world, 0))
+    step = float(np.linalg.norm(world.poses[5, :3, 3] - world.poses[0, :3, 3]))
+    assert step > 0.05  # the frames really move away from the reference
+    for i in range(1, 6):
+        f = world.render(i)
+        out = tracker.track(i, f.t_ns, _grey(f.rgb, half=True))
+        assert out is not None and out.ok and out.ref_seq == 0
+        trans, rot = _errors(out.pose, world.poses[i])
+        assert trans < 0.05 * step + 2e-3 and rot < 0.3, (i, trans, rot)
+
+
+def test_a_frame_without_texture_stays_at_the_constant_velocity_prediction():
+    world = synth.SynthWorld(synth.SynthConfig(n_frames=60, width=512, height=384))
+    tracker = Tracker(MotionParams(), FlowParams())
+    tracker.set_reference(_reference(world, 0))
+    for i in (1, 2):
+        f = world.render(i)
+        tracker.track(i, f.t_ns, _grey(f.rgb, half=True))
+    f = world.render(3)
+    guess = tracker.predict(f.t_ns)
+    out = tracker.track(3, f.t_ns, np.zeros((192, 256), np.uint8))
+    assert out is not None and not out.ok  # a blank frame carries no motion evidence: the tracker invents none
+    trans, rot = _errors(out.pose, guess.numpy())
+    assert trans < 1e-3 and rot < 0.05
