@@ -1,9 +1,11 @@
-"""Mapstore over real Zenoh: basis v2 never comes on the ``pca`` topic, yet the keyframe coded with it is fused,
+"""Mapstore over real Zenoh: basis v2 never comes on the ``pca`` topic, yet the codes coded with it are fused,
 because the mapstore fetched v2 from the real features ``pca`` queryable (after features came up: the first
 request failed, was counted, and was retried). The final map equals one built from every message, v2 included.
 
-Keyframes and bases are the real features outputs (tests/test_pca_fetch_features.py); ba's graphs are the
-synthetic world's exact poses and depth. The test plays upstream: one message at a time, each waited for.
+Keyframes (geometry first), their codes and bases are the real features outputs (tests/test_pca_fetch_features.py);
+ba's graphs are the synthetic world's exact poses and depth. The test plays upstream: one message at a time, each
+waited for. Codes whose basis is unknown wait for it (the keyframe is fused for geometry meanwhile); stored before
+a restart, they hold their keyframe until the basis is fetched.
 """
 from __future__ import annotations
 
@@ -17,7 +19,7 @@ from services.common import keys
 from services.common.bus import Bus
 from services.common.config import BusSettings
 from services.common.pca_fetch import BasisFetch, FetchParams
-from services.common.schema import Graph, Keyframe, Message, PcaBasis
+from services.common.schema import Graph, Keyframe, KeyframeCodes, Message, PcaBasis
 from services.mapstore import service as mapstore
 from services.mapstore.config import MapstoreSettings
 from services.mapstore.state import MapState
@@ -31,13 +33,13 @@ ACK_S = 20.0
 
 
 def with_graphs(run: FeaturesRun) -> list[Message]:
-    """features' bases and keyframes, each keyframe followed by ba's graph: exact poses of every keyframe so far
-    and the exact disparity of the new one on the 1/8 grid (cell centres, docs/CONVENTIONS.md)."""
+    """features' bases, keyframes and codes, each keyframe followed by ba's graph: exact poses of every keyframe so
+    far and the exact disparity of the new one on the 1/8 grid (cell centres, docs/CONVENTIONS.md)."""
     out: list[Message] = []
     seqs: list[int] = []
     grid = slice(3, None, 8)
     for msg in run.outputs:
-        if isinstance(msg, PcaBasis):
+        if isinstance(msg, (PcaBasis, KeyframeCodes)):
             out.append(msg)
         if not isinstance(msg, Keyframe):
             continue
@@ -62,7 +64,15 @@ def applied(state: MapState, msg: Message) -> bool:
             return msg.version in state.bases
         if isinstance(msg, Keyframe):
             return msg.seq in state.map.contents
+        if isinstance(msg, KeyframeCodes):
+            return msg.seq in state.waiting_codes or state.has_codes(msg.seq)
         return int(msg.updated_seqs[0]) in state.map.poses
+
+
+def waiting(state: MapState) -> list[int]:
+    """Keyframes whose codes wait for their basis (or their keyframe)."""
+    with state.lock:
+        return sorted(state.waiting_codes)
 
 
 def held(state: MapState) -> list[int]:
@@ -70,10 +80,10 @@ def held(state: MapState) -> list[int]:
         return state.map.held
 
 
-def test_a_keyframe_whose_basis_never_came_is_fused_with_the_basis_fetched_from_features(tmp_path, unix_endpoint):
+def test_codes_whose_basis_never_came_are_fused_with_the_basis_fetched_from_features(tmp_path, unix_endpoint):
     run = features_run(STREAM)
     msgs = [m for m in with_graphs(run) if not (isinstance(m, PcaBasis) and m.version == MISSED)]
-    first_missed = next(i for i, m in enumerate(msgs) if isinstance(m, Keyframe) and m.pca_version == MISSED)
+    first_missed = next(i for i, m in enumerate(msgs) if isinstance(m, KeyframeCodes) and m.pca_version == MISSED)
     cfg = settings(tmp_path / "live")
     state = MapState(cfg)
     fetch = BasisFetch(FetchParams(retry_s=0.5))
@@ -89,18 +99,18 @@ def test_a_keyframe_whose_basis_never_came_is_fused_with_the_basis_fetched_from_
             bus.publish(keys.topic(STREAM, msg.KIND), msg)
             wait_until(lambda: applied(state, msg), ACK_S, f"the mapstore to apply {msg.KIND} {msg.seq}")
 
-        for msg in msgs[: first_missed + 2]:  # up to the first keyframe of the missed version and its graph
+        for msg in msgs[: first_missed + 1]:  # up to the first codes of the missed version
             send(msg)
         missed_seq = msgs[first_missed].seq
-        # features is not serving yet: the request fails, is counted, and the keyframe stays held
+        # features is not serving yet: the request fails, is counted, and the codes wait (the geometry is fused)
         wait_until(lambda: fetch.failures["timeout"] >= 1, ACK_S, "a failed request for the missed basis")
-        assert missed_seq in held(state) and worker.is_alive()
+        assert missed_seq in waiting(state) and not held(state) and worker.is_alive()
         features_worker, features_stop = serve(run, fbus)
-        wait_until(lambda: MISSED in state.bases and missed_seq not in held(state), ACK_S,
+        wait_until(lambda: MISSED in state.bases and state.has_codes(missed_seq), ACK_S,
                    "the missed basis fetched from features on a retry")
-        for msg in msgs[first_missed + 2:]:
+        for msg in msgs[first_missed + 1:]:
             send(msg)
-        # a keyframe of a version features never published: an error reply, counted; held, and the service lives
+        # codes of a version features never published: an error reply, counted; they wait, and the service lives
         stray = dataclasses.replace(msgs[first_missed], seq=1000, pca_version=99)
         send(stray)
         wait_until(lambda: fetch.failures["error_reply"] >= 1, ACK_S, "the refusal of version 99")
@@ -110,7 +120,7 @@ def test_a_keyframe_whose_basis_never_came_is_fused_with_the_basis_fetched_from_
         worker.join(10)
         features_worker.join(10)
     assert fetch.fetched == {MISSED: 1}  # asked once it could be answered, and only for the version it missed
-    assert held(state) == [stray.seq] and state.map.code_version == max(run.state.bases)
+    assert waiting(state) == [stray.seq] and not held(state) and state.map.code_version == max(run.state.bases)
     sent = next(m for m in run.outputs if isinstance(m, PcaBasis) and m.version == MISSED)
     np.testing.assert_array_equal(state.bases[MISSED].components, sent.components)
     np.testing.assert_array_equal(state.store.load().bases[MISSED].mean, sent.mean)  # committed like a message
@@ -118,7 +128,8 @@ def test_a_keyframe_whose_basis_never_came_is_fused_with_the_basis_fetched_from_
     reference = MapState(settings(tmp_path / "reference"))
     for msg in with_graphs(run):  # every message, v2 included, straight through the handlers
         mapstore.handle(reference, msg, reference.cfg)
-    assert not reference.map.held and reference.map.code_version == state.map.code_version
+    assert not reference.map.held and not reference.waiting_codes
+    assert reference.map.code_version == state.map.code_version
     assert_same_map(state.map, reference.map)
     state.close()
     reference.close()
@@ -127,14 +138,14 @@ def test_a_keyframe_whose_basis_never_came_is_fused_with_the_basis_fetched_from_
 def test_a_restarted_mapstore_fetches_the_bases_its_stored_keyframes_wait_for(tmp_path, unix_endpoint):
     run = features_run(STREAM)
     cfg = settings(tmp_path)
-    first = MapState(cfg)  # the run before the restart: v2 never came, its keyframe is stored and held
+    first = MapState(cfg)  # the run before the restart: v2 never came, its codes are stored and wait for it
     for msg in with_graphs(run):
         if not (isinstance(msg, PcaBasis) and msg.version == MISSED):
             mapstore.handle(first, msg, cfg)
-    missed = [m.seq for m in run.outputs if isinstance(m, Keyframe) and m.pca_version == MISSED]
-    assert held(first) == missed
+    missed = [m.seq for m in run.outputs if isinstance(m, KeyframeCodes) and m.pca_version == MISSED]
+    assert missed and waiting(first) == missed and not held(first)
     first.close()
-    state = MapState(cfg)  # restart: reloads the held keyframe from SQLite; nothing more comes on the topics
+    state = MapState(cfg)  # restart: reloads the keyframe with its codes from SQLite, held for the basis
     assert held(state) == missed
     fetch = BasisFetch()
     stop = threading.Event()

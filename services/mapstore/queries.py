@@ -6,6 +6,9 @@
 | segment | ``MapQuery`` payload (the vectors are the label set) | ``MapSegment``: per-point argmax label and score |
 | export | selector ``?chunk=i;chunk_size=n`` | ``MapChunk`` i of the fused map |
 | stats | — | ``MapStats`` |
+
+Voxels that only keyframes whose codes have not arrived saw have no code: they are absent from scoring (NaN in
+``all_scores`` and ``MapSegment.score``, label −1, never a top point or in a region), not scored as the zero code.
 """
 
 from __future__ import annotations
@@ -38,13 +41,16 @@ def query(state: MapState, q: MapQuery) -> MapAnswer:
     index = state.index()
     fused = state.map.fused()
     scores = index.score(q.vectors)
-    top = index.topk(q.vectors, min(q.top_k, len(fused.keys))) if len(fused.keys) else None
+    top = index.topk(q.vectors, q.top_k) if index.n_valid else None
     params = state.map.params.regions
     rows: list[tuple] = []
     for qi, s in enumerate(scores):
         threshold = q.threshold
         if threshold < 0:
-            threshold = params.relative_threshold * float(s.max()) if params.relative_threshold > 0 and s.size else params.score_threshold
+            scored = s[np.isfinite(s)]  # voxels without codes (NaN) take no part
+            threshold = params.score_threshold
+            if params.relative_threshold > 0 and scored.size:
+                threshold = params.relative_threshold * float(scored.max())
         found = find_regions(fused.ijk, fused.xyz, s, dataclasses.replace(params, score_threshold=threshold,
                                                                           max_regions=q.max_regions))
         rows += [(qi, r.score, r.centroid, r.box_min, r.box_max, r.count) for r in found]
@@ -84,7 +90,8 @@ def stats(state: MapState, stream: str) -> MapStats:
     fused = state.map.fused()
     return MapStats(stream, state.map.revision, time.time_ns(), keyframes=len(state.map.contents),
                     points=int(len(fused.keys)), voxels=int(len(fused.keys)), backbone=_basis_space(state),
-                    pca_version=max(state.bases) if state.bases else -1, metric=bool(state.metric))
+                    pca_version=max(state.bases) if state.bases else -1, metric=bool(state.metric),
+                    keyframes_without_codes=sum(not c.has_codes for c in state.map.contents.values()))
 
 
 def answer(state: MapState, stream: str, key: str, params: dict, payload: bytes | None) -> bytes:

@@ -1,10 +1,17 @@
-"""Mapstore service: keyframe / pca / graph / eos in, queryables on ``kmvipe/<s>/map/**`` out.
+"""Mapstore service: keyframe / codes / pca / graph / eos in, queryables on ``kmvipe/<s>/map/**`` out.
 
 One handler per message kind (`handle_<kind>(state, msg, cfg)`); `run` only receives, handles and serves.
 
 A keyframe coded with a PCA basis version that no ``pca`` message brought (missed while down, or lost) is held;
 `run` asks features' ``pca`` queryable for that version (`BasisFetch`: once, then again every ``retry_s`` while
 it fails) and feeds the reply through `handle_pca`, like a ``pca`` message.
+
+A keyframe's geometry comes first (``Keyframe`` without codes) and its codes later (``KeyframeCodes`` on
+``kmvipe/<s>/codes``): the keyframe is fused for geometry at once and re-fused with its codes when they come
+(`MapState.add_codes`). After every keyframe, and as a heartbeat every ``PROGRESS_S``, `run` reports the highest
+keyframe seq it has committed on ``kmvipe/<s>/progress`` (a ``Credit``): features holds ingest back while the
+mapstore is behind, so in lossless mode nothing queues without bound. The inbox is lossless: every message kind
+the mapstore takes (keyframes, codes, graphs, bases, EOS) is essential.
 """
 
 from __future__ import annotations
@@ -20,7 +27,8 @@ from services.common import keys
 from services.common.bus import Bus
 from services.common.errors import DecodeError, ServiceTimeout
 from services.common.pca_fetch import BasisFetch
-from services.common.schema import Eos, Graph, Keyframe, Message, PcaBasis as PcaMessage, decode
+from services.common.schema import (Credit, Eos, Graph, Keyframe, KeyframeCodes, Message, PcaBasis as PcaMessage,
+                                    decode)
 from services.mapstore import queries
 from services.mapstore.config import MapstoreSettings
 from services.mapstore.core.keyframe import KeyframeDepth
@@ -31,13 +39,18 @@ from services.mapstore.state import MapState
 log = logging.getLogger(__name__)
 POLL_S = 0.1
 PCA_FETCH_TIMEOUT_S = 1.0
+PROGRESS_S = 0.15  # heartbeat of the progress reports (features forgets a consumer silent for its credit TTL)
 
 
 def handle_keyframe(state: MapState, msg: Keyframe, cfg: MapstoreSettings) -> None:
-    if msg.codes is None:
-        log.info("keyframe without codes ignored", extra={"stream": msg.stream, "seq": msg.seq})
-        return
-    state.add_keyframe(msg.seq, msg.t_ns, msg.image, msg.codes, msg.intrinsics, msg.pca_version)
+    """Commit and fuse a keyframe; without codes (they follow in a ``KeyframeCodes``) for geometry only."""
+    state.add_keyframe(msg.seq, msg.t_ns, msg.image, msg.codes, msg.intrinsics, msg.pca_version, msg.realtime)
+
+
+def handle_codes(state: MapState, msg: KeyframeCodes, cfg: MapstoreSettings) -> None:
+    """The codes of keyframe ``msg.seq``: commit them and re-fuse it with them (they wait for a keyframe or basis
+    that has not come yet)."""
+    state.add_codes(msg.seq, msg.pca_version, msg.codes)
 
 
 def handle_pca(state: MapState, msg: PcaMessage, cfg: MapstoreSettings) -> None:
@@ -73,15 +86,22 @@ def handle_eos(state: MapState, msg: Eos, cfg: MapstoreSettings) -> list[tuple[s
 
 def stream_complete(state: MapState) -> bool:
     """ba's final graph is in, and so is every keyframe it names (keyframes come from features, on another key)
-    with the PCA basis it was coded with (the ``pca`` key may lag behind the keyframe)."""
+    with its codes and the PCA basis they were coded with (the ``codes`` and ``pca`` keys may lag behind the
+    keyframe) — except codes of a real-time stream's keyframes, which the backbone may have skipped."""
     with state.lock:
+        if state.final_keyframes is None:
+            return False
         fused = set(state.map.contents) - set(state.map.held)
-        return state.final_keyframes is not None and state.final_keyframes <= fused
+        return state.final_keyframes <= fused and all(
+            state.map.contents[k].has_codes or k in state.realtime for k in state.final_keyframes)
 
 
 def finish_stream(state: MapState, msg: Eos, cfg: MapstoreSettings) -> list[tuple[str, Message]]:
     state.pending_eos, state.final_keyframes = None, None
-    log.info("end of stream", extra={"stream": msg.stream, "seq": msg.seq, "stage": msg.stage})
+    with state.lock:
+        without = state.map.without_codes
+    log.info("end of stream", extra={"stream": msg.stream, "seq": msg.seq, "stage": msg.stage,
+                                     "keyframes_without_codes": len(without)})
     if cfg.export_dir:
         export_state(state, Path(cfg.export_dir))
     with state.lock:
@@ -112,7 +132,8 @@ def _is_rigid(pose: np.ndarray, tol: float = 1e-3) -> bool:
     return bool(np.all(np.isfinite(pose)) and np.allclose(rot.T @ rot, np.eye(3), atol=tol))
 
 
-HANDLERS = {Keyframe: handle_keyframe, PcaMessage: handle_pca, Graph: handle_graph, Eos: handle_eos}
+HANDLERS = {Keyframe: handle_keyframe, KeyframeCodes: handle_codes, PcaMessage: handle_pca, Graph: handle_graph,
+            Eos: handle_eos}
 
 
 def handle(state: MapState, msg: Message, cfg: MapstoreSettings) -> list[tuple[str, Message]]:
@@ -145,20 +166,38 @@ def _held_versions(state: MapState) -> set[int]:
         return {state.map.contents[k].pca_version for k in state.map.held}
 
 
+def progress_report(state: MapState, cfg: MapstoreSettings, consumer: str) -> tuple[str, Credit]:
+    """The progress report: ``seq`` = the highest keyframe seq committed (features counts the keyframes it
+    published above it as the mapstore's backlog)."""
+    return keys.topic(cfg.stream, keys.PROGRESS), Credit(cfg.stream, state.committed_seq(), time.time_ns(),
+                                                         consumer=consumer)
+
+
+def _wanted_version(state: MapState, msg: Message) -> int | None:
+    """The basis version a keyframe or codes message needs that the mapstore lacks, if any."""
+    if isinstance(msg, (Keyframe, KeyframeCodes)) and msg.codes is not None and msg.pca_version not in state.bases:
+        return msg.pca_version
+    return None
+
+
 def run(cfg: MapstoreSettings, bus: Bus, stop: threading.Event, state: MapState | None = None,
         fetch: BasisFetch | None = None) -> MapState:
     """Serve the map of `cfg.stream` until `stop` is set. ``fetch``: the missing-basis requests (counts)."""
     state, fetch = state or MapState(cfg), fetch or BasisFetch()
-    inbox = bus.inbox({keys.topic(cfg.stream, keys.KEYFRAME): [Keyframe], keys.topic(cfg.stream, keys.PCA): [PcaMessage],
-                       keys.topic(cfg.stream, keys.GRAPH): [Graph], keys.topic(cfg.stream, keys.EOS): [Eos]})
+    topic = lambda name: keys.topic(cfg.stream, name)  # noqa: E731
+    inbox = bus.inbox({topic(keys.KEYFRAME): [Keyframe], topic(keys.CODES): [KeyframeCodes],
+                       topic(keys.PCA): [PcaMessage], topic(keys.GRAPH): [Graph], topic(keys.EOS): [Eos]},
+                      lossless=True, droppable=())  # every kind is essential: credit bounds the queue, not drops
+    consumer = f"mapstore-{bus.instance}"
     bus.serve(keys.map_key(cfg.stream, "**"), lambda key, params, payload: queries.answer(state, cfg.stream, key, params, payload))
     bus.ready()
     _fetch_current_basis(state, bus, cfg)
     for version in _held_versions(state):
         fetch.want(version)
     log.info("mapstore serving", extra={"stream": cfg.stream})
+    last_report = 0.0
     while not stop.is_set():
-        delivery = inbox.get(POLL_S)
+        delivery = inbox.get(min(POLL_S, PROGRESS_S))
         if delivery is not None:
             with state.batch():
                 for n in range(cfg.refresh_batch):
@@ -167,8 +206,14 @@ def run(cfg: MapstoreSettings, bus: Bus, stop: threading.Event, state: MapState 
                     for key, out in handle(state, delivery.msg, cfg):
                         bus.publish(key, out)
                     msg = delivery.msg
-                    if isinstance(msg, Keyframe) and msg.codes is not None and msg.pca_version not in state.bases:
-                        fetch.want(msg.pca_version)
+                    if (version := _wanted_version(state, msg)) is not None:
+                        fetch.want(version)
+                    if isinstance(msg, Keyframe):  # committed (fused at the batch's end): report at once
+                        bus.publish(*progress_report(state, cfg, consumer))
+                        last_report = time.monotonic()
+        if time.monotonic() - last_report >= PROGRESS_S:  # heartbeat: the next one repeats it, no need to block
+            bus.publish(*progress_report(state, cfg, consumer), drop_if_congested=True)
+            last_report = time.monotonic()
         fetch.run_due(bus, cfg.stream, state.bases, lambda basis: handle(state, basis, cfg))
         held = state.pending_eos
         if held is not None and (stream_complete(state) or time.monotonic() > state.eos_deadline):

@@ -9,6 +9,14 @@ affine map per keyframe version (`KeyframeMap.set_code_space`); a keyframe whose
 stored and held (not fused, not counted as in the map) until it does — also across a restart, since bases are
 stored too. A restart converts each stored keyframe from its own version to the latest stored one, which is
 what the uninterrupted run did, so both give the same map.
+
+Codes after geometry: features sends a keyframe's geometry at once (a ``Keyframe`` without codes) and its codes
+later (``KeyframeCodes``). A keyframe without codes is committed and fused for geometry at once (points, colours,
+carving depth evidence; no code sums). Its codes are committed when they come and the keyframe is re-fused with
+them; codes whose keyframe has not come yet (another key: Zenoh orders per key only) wait in memory for it, and
+codes whose basis has not come yet are committed but wait for the basis before they enter the map (the keyframe
+stays in it for geometry meanwhile; a restart in between reloads it with its codes, held for the basis like any
+stored keyframe whose basis is unknown). A ``Keyframe`` that carries its codes works as before.
 """
 
 from __future__ import annotations
@@ -47,6 +55,9 @@ class MapState:
             self.map.set_code_space(*code_maps_to_latest(self.bases))
         self.metric = stored.meta.get("metric") == "1"
         self.intrinsics = stored.intrinsics
+        self.realtime: set[int] = stored.realtime  # keyframes of a real-time stream: their codes may never come
+        # codes not in the map yet: their keyframe has not arrived (memory only), or their basis (committed)
+        self.waiting_codes: dict[int, tuple[int, np.ndarray]] = {}  # kf_id -> (pca_version, (h, w, K) float16)
         for kf_id, content in stored.contents.items():
             self.map.add_content(content)
         for kf_id, depth in stored.depths.items():
@@ -61,30 +72,85 @@ class MapState:
         self.pending_eos = None
         self.eos_deadline = 0.0
         log.info("map loaded", extra={"stream": cfg.stream, "keyframes": len(stored.contents),
-                                      "held": len(self.map.held), "voxels": len(self.map.fused().keys)})
+                                      "held": len(self.map.held), "without_codes": len(self.map.without_codes),
+                                      "voxels": len(self.map.fused().keys)})
 
     def close(self) -> None:
         self.store.close()
 
     # ----- writes ---------------------------------------------------------------------------------
-    def add_keyframe(self, kf_id: int, t_ns: int, image: np.ndarray, codes: np.ndarray, intrinsics: np.ndarray,
-                     pca_version: int) -> None:
-        """Commit then apply a keyframe: image (H, W, 3) uint8 RGB, codes (H/8, W/8, K)."""
-        content = KeyframeContent(kf_id, t_ns, codes.astype(np.float16), sample_cell_colours(image),
-                                  image.shape[:2], pca_version)
+    def add_keyframe(self, kf_id: int, t_ns: int, image: np.ndarray, codes: np.ndarray | None,
+                     intrinsics: np.ndarray, pca_version: int, realtime: bool = False) -> None:
+        """Commit then apply a keyframe: image (H, W, 3) uint8 RGB, codes (H/8, W/8, K) or None (geometry now,
+        codes later: `add_codes`); ``realtime``: from a real-time stream, whose keyframes may never get codes."""
+        colours = sample_cell_colours(image)
         jpeg = None
         if self.cfg.store_images:
             ok, buf = cv2.imencode(".jpg", cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
             jpeg = buf.tobytes() if ok else None
         with self.lock:
-            self.store.put_keyframe(content, intrinsics, jpeg)
+            waiting = False
+            if codes is not None:  # the keyframe carries its codes (as before codes had their own message)
+                self.waiting_codes.pop(kf_id, None)
+            elif kf_id in self.waiting_codes:  # its codes overtook it
+                pca_version, codes = self.waiting_codes[kf_id]
+                waiting = True
+            else:  # geometry only; a repeat of a keyframe whose codes are in keeps them
+                old = self.map.contents.get(kf_id)
+                keep = old is not None and old.has_codes and old.grid_shape == colours.shape[:2]
+                codes, pca_version = (old.codes, old.pca_version) if keep else (None, -1)
+            codes = None if codes is None else np.asarray(codes).astype(np.float16)
+            content = KeyframeContent(kf_id, t_ns, codes, colours, image.shape[:2], pca_version)
+            self.store.put_keyframe(content, intrinsics, jpeg, realtime)
             self.intrinsics[kf_id] = np.asarray(intrinsics, np.float64)
-            self.map.add_content(content)
-            if pca_version not in self.bases:  # zenoh orders per key only: its basis may still be on the way
-                log.info("keyframe held until its PCA basis arrives", extra={"stream": self.cfg.stream, "seq": kf_id,
-                                                                             "pca_version": pca_version})
+            if realtime:
+                self.realtime.add(kf_id)
+            if waiting and pca_version not in self.bases:  # geometry now, the codes once their basis is in
+                self.map.add_content(KeyframeContent(kf_id, t_ns, None, colours, image.shape[:2], -1))
+                self._log_waiting_basis(kf_id, pca_version)
+            else:
+                self.waiting_codes.pop(kf_id, None)
+                self.map.add_content(content)
+                if codes is not None and pca_version not in self.bases:  # its basis may still be on the way
+                    log.info("keyframe held until its PCA basis arrives",
+                             extra={"stream": self.cfg.stream, "seq": kf_id, "pca_version": pca_version})
             # ba's graph may have overtaken this keyframe on the bus (they come from different services)
             self._refresh(self.metric)
+
+    def add_codes(self, kf_id: int, pca_version: int, codes: np.ndarray) -> None:
+        """Commit then apply the codes (h, w, K) of keyframe ``kf_id`` (coded with basis ``pca_version``): it is
+        re-fused with them. Codes before their keyframe wait (in memory) for it; codes before their basis are
+        committed and wait for it (the keyframe stays in the map for geometry meanwhile)."""
+        codes = np.asarray(codes).astype(np.float16)
+        with self.lock:
+            content = self.map.contents.get(kf_id)
+            if content is None:  # another key than the keyframe's: the codes may overtake it
+                self.waiting_codes[kf_id] = (pca_version, codes)
+                log.info("codes wait for their keyframe", extra={"stream": self.cfg.stream, "seq": kf_id})
+                return
+            if codes.ndim != 3 or codes.shape[:2] != content.grid_shape:
+                raise ValueError(f"codes {codes.shape} of keyframe {kf_id} do not fit its {content.grid_shape} grid")
+            if content.has_codes and content.pca_version == pca_version and np.array_equal(content.codes, codes):
+                return  # a repeat
+            self.store.put_codes(kf_id, pca_version, codes)
+            if pca_version not in self.bases:
+                self.waiting_codes[kf_id] = (pca_version, codes)
+                self._log_waiting_basis(kf_id, pca_version)
+                return
+            self.waiting_codes.pop(kf_id, None)
+            self.map.set_codes(kf_id, codes, pca_version)
+            self._refresh(self.metric)
+
+    def _log_waiting_basis(self, kf_id: int, pca_version: int) -> None:
+        log.info("codes wait for their PCA basis (the keyframe is fused for geometry meanwhile)",
+                 extra={"stream": self.cfg.stream, "seq": kf_id, "pca_version": pca_version})
+
+    def _apply_waiting_codes(self) -> None:
+        """Put the waiting codes whose keyframe and basis are both in into the map (lock held)."""
+        for kf_id, (version, codes) in list(self.waiting_codes.items()):
+            if kf_id in self.map.contents and version in self.bases:
+                del self.waiting_codes[kf_id]
+                self.map.set_codes(kf_id, codes, version)
 
     def add_basis(self, basis: PcaBasis) -> None:
         """Commit then apply a basis: the fused map moves to the latest version, held keyframes it frees are fused."""
@@ -96,6 +162,7 @@ class MapState:
             self.store.put_basis(basis)
             self.bases[basis.version] = basis
             self.map.set_code_space(*code_maps_to_latest(self.bases))
+            self._apply_waiting_codes()
             self._refresh(self.metric)
             if self.map.held:
                 log.info("keyframes held for their PCA basis", extra={"stream": self.cfg.stream,
@@ -143,6 +210,17 @@ class MapState:
         return len(report.refreshed)
 
     # ----- reads ----------------------------------------------------------------------------------
+    def committed_seq(self) -> int:
+        """The highest keyframe seq committed (-1: none): what the mapstore reports as its progress."""
+        with self.lock:
+            return max(self.map.contents, default=-1)
+
+    def has_codes(self, kf_id: int) -> bool:
+        """Whether keyframe ``kf_id`` is in the map with its codes."""
+        with self.lock:
+            content = self.map.contents.get(kf_id)
+            return content is not None and content.has_codes
+
     def basis(self) -> PcaBasis:
         if not self.bases:
             raise LookupError("no PCA basis received yet: the map cannot score queries")
@@ -153,7 +231,8 @@ class MapState:
         with self.lock:
             basis = self.basis()
             if self._index is None or self._index[:2] != (self.map.revision, basis.version):
-                fused = self.map.fused()
+                fused = self.map.fused()  # voxels only keyframes without codes saw have none: absent, not scored
                 self._index = (self.map.revision, basis.version,
-                               ScoringIndex(fused.codes, basis, self.map.params.scoring.device))
+                               ScoringIndex(fused.codes, basis, self.map.params.scoring.device,
+                                            valid=None if fused.code_weight is None else fused.code_weight > 0))
             return self._index[2]

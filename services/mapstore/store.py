@@ -40,6 +40,17 @@ MIGRATIONS: list[str] = [
     CREATE TABLE images (kf_id INTEGER PRIMARY KEY, jpeg BLOB NOT NULL);
     ALTER TABLE keyframes ADD COLUMN intrinsics BLOB;
     """,
+    # 3: a keyframe's codes follow its geometry (NULL until they arrive, pca_version -1), and whether it came from
+    # a real-time stream (whose keyframes may never get codes). SQLite cannot drop a NOT NULL: copy the table.
+    """
+    CREATE TABLE keyframes_v3 (kf_id INTEGER PRIMARY KEY, t_ns INTEGER NOT NULL, pca_version INTEGER NOT NULL,
+        height INTEGER NOT NULL, width INTEGER NOT NULL, codes BLOB, colours BLOB NOT NULL, intrinsics BLOB,
+        realtime INTEGER NOT NULL DEFAULT 0);
+    INSERT INTO keyframes_v3 (kf_id, t_ns, pca_version, height, width, codes, colours, intrinsics)
+        SELECT kf_id, t_ns, pca_version, height, width, codes, colours, intrinsics FROM keyframes;
+    DROP TABLE keyframes;
+    ALTER TABLE keyframes_v3 RENAME TO keyframes;
+    """,
 ]
 SCHEMA_VERSION = len(MIGRATIONS)
 
@@ -85,7 +96,8 @@ def migrate(conn: sqlite3.Connection, target: int = SCHEMA_VERSION) -> int:
 class StoredMap:
     """Everything a restart reloads."""
 
-    contents: dict[int, KeyframeContent] = field(default_factory=dict)
+    contents: dict[int, KeyframeContent] = field(default_factory=dict)  # codes None: not arrived yet
+    realtime: set[int] = field(default_factory=set)  # keyframes of a real-time stream (codes may never come)
     intrinsics: dict[int, np.ndarray] = field(default_factory=dict)  # as the keyframe arrived, (4,) float64
     depths: dict[int, KeyframeDepth] = field(default_factory=dict)
     poses: dict[int, np.ndarray] = field(default_factory=dict)  # (4, 4) float64 world_from_cam
@@ -120,27 +132,39 @@ class MapStore:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def _write(self, statements: list[tuple[str, tuple]]) -> None:
+    def _write(self, statements: list[tuple[str, tuple]]) -> int:
+        """Run the statements in one transaction; returns the rows they changed."""
+        changed = 0
         with self._lock:
             self._conn.execute("BEGIN IMMEDIATE")
             try:
                 for sql, args in statements:
-                    self._conn.execute(sql, args)
+                    changed += max(self._conn.execute(sql, args).rowcount, 0)
             except BaseException:
                 self._conn.execute("ROLLBACK")
                 raise
             self._conn.execute("COMMIT")
+        return changed
 
-    def put_keyframe(self, content: KeyframeContent, intrinsics: np.ndarray, jpeg: bytes | None = None) -> None:
-        """Store a keyframe's codes, colours, arrival intrinsics (4,) and optional JPEG image."""
+    def put_keyframe(self, content: KeyframeContent, intrinsics: np.ndarray, jpeg: bytes | None = None,
+                     realtime: bool = False) -> None:
+        """Store a keyframe's codes (or none yet), colours, arrival intrinsics (4,), optional JPEG image, and
+        whether it came from a real-time stream."""
         h, w = content.image_hw
         rows = [("INSERT OR REPLACE INTO keyframes (kf_id, t_ns, pca_version, height, width, codes, colours, "
-                 "intrinsics) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                 "intrinsics, realtime) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
                  (content.kf_id, content.t_ns, content.pca_version, h, w, to_blob(content.codes),
-                  to_blob(content.colours), to_blob(np.asarray(intrinsics, np.float64))))]
+                  to_blob(content.colours), to_blob(np.asarray(intrinsics, np.float64)), int(realtime)))]
         if jpeg is not None:
             rows.append(("INSERT OR REPLACE INTO images (kf_id, jpeg) VALUES (?, ?)", (content.kf_id, jpeg)))
         self._write(rows)
+
+    def put_codes(self, kf_id: int, pca_version: int, codes: np.ndarray) -> None:
+        """Store the codes (h, w, K) of a stored keyframe, coded with basis ``pca_version`` (they follow its
+        geometry); LookupError if the keyframe is not stored."""
+        if not self._write([("UPDATE keyframes SET codes = ?, pca_version = ? WHERE kf_id = ?",
+                             (to_blob(codes), int(pca_version), int(kf_id)))]):
+            raise LookupError(f"codes for keyframe {kf_id}, which is not stored")
 
     def put_graph(self, poses: dict[int, np.ndarray], depths: dict[int, KeyframeDepth]) -> None:
         """Store the latest poses ((4, 4) world_from_cam) and depths of many keyframes atomically."""
@@ -191,12 +215,14 @@ class MapStore:
 
     def _load_into(self, out: StoredMap) -> None:
         q = self._conn.execute
-        for kf_id, t_ns, ver, h, w, codes, colours, intr in q(
-            "SELECT kf_id, t_ns, pca_version, height, width, codes, colours, intrinsics FROM keyframes"
+        for kf_id, t_ns, ver, h, w, codes, colours, intr, realtime in q(
+            "SELECT kf_id, t_ns, pca_version, height, width, codes, colours, intrinsics, realtime FROM keyframes"
         ):
             out.contents[kf_id] = KeyframeContent(kf_id, t_ns, from_blob(codes), from_blob(colours), (h, w), ver)
             if intr is not None:
                 out.intrinsics[kf_id] = from_blob(intr)
+            if realtime:
+                out.realtime.add(kf_id)
         for kf_id, intr, disp, static, conf in q(
             "SELECT kf_id, intrinsics, disparity, static_weight, confidence FROM depths"
         ):

@@ -8,6 +8,10 @@ observation count drops to zero is cleared exactly, so rounding does not accumul
 A contribution keeps its code sums in the PCA version its keyframe was coded with; the grid holds them in the
 map's current version, each contribution entering through the affine map of its version (Σw·z ↦ MΣw·z + cΣw,
 ``services/common/pca_codes.py``). A new version re-sums the grid's codes from the contributions (`recode`).
+
+A keyframe whose codes have not arrived contributes geometry and colours only (``codes`` None): code sums have
+their own weight and point count per voxel, so a voxel seen only by such keyframes has no code (NaN in
+`FusedVoxels.codes`, ``code_weight`` 0) rather than the zero code, which would decode to the PCA mean.
 """
 
 from __future__ import annotations
@@ -44,32 +48,33 @@ class Contribution:
     """One keyframe's per-voxel sums (M distinct voxels).
 
     Fields: keys (M,) int64; weight (M,) float64 Σw; xyz (M, 3) float64 Σw·x (world);
-    codes (M, K) float32 Σw·z; colours (M, 3) float32 Σw·rgb; count (M,) int64 points.
+    codes (M, K) float32 Σw·z, or None for a keyframe without codes (geometry only); colours (M, 3) float32
+    Σw·rgb; count (M,) int64 points.
     """
 
     keys: np.ndarray
     weight: np.ndarray
     xyz: np.ndarray
-    codes: np.ndarray
+    codes: np.ndarray | None
     colours: np.ndarray
     count: np.ndarray
 
 
 def make_contribution(
-    points_world: np.ndarray, weight: np.ndarray, codes: np.ndarray, colours: np.ndarray, voxel_size: float
+    points_world: np.ndarray, weight: np.ndarray, codes: np.ndarray | None, colours: np.ndarray, voxel_size: float
 ) -> Contribution:
     """Sum one keyframe's points per voxel.
 
     Args:
         points_world: (M, 3) float64 world points.
         weight: (M,) float point weights (> 0).
-        codes: (M, K) float codes; colours: (M, 3) uint8/float RGB.
+        codes: (M, K) float codes, or None (a keyframe without codes); colours: (M, 3) uint8/float RGB.
         voxel_size: voxel edge in world units.
     Returns:
         Contribution over the distinct voxels the points fall in.
     """
     n = points_world.shape[0]
-    if weight.shape != (n,) or codes.shape[0] != n or colours.shape != (n, 3):
+    if weight.shape != (n,) or (codes is not None and codes.shape[0] != n) or colours.shape != (n, 3):
         raise ValueError("points, weight, codes and colours must have the same length")
     keys = voxel_keys(np.floor(points_world / voxel_size).astype(np.int64))
     order = np.argsort(keys, kind="stable")
@@ -86,7 +91,7 @@ def make_contribution(
         keys=sk[starts],
         weight=np.add.reduceat(w, starts) if n else np.zeros(0),
         xyz=wsum(points_world.astype(np.float64), np.float64),
-        codes=wsum(codes.astype(np.float32), np.float32),
+        codes=None if codes is None else wsum(codes.astype(np.float32), np.float32),
         colours=wsum(colours.astype(np.float32), np.float32),
         count=np.diff(np.r_[starts, n]).astype(np.int64),
     )
@@ -98,10 +103,12 @@ class FusedVoxels(NamedTuple):
     keys: np.ndarray  # (N,) int64 voxel keys
     ijk: np.ndarray  # (N, 3) int64 voxel coordinates
     xyz: np.ndarray  # (N, 3) float64 weighted mean world position
-    codes: np.ndarray  # (N, K) float32 weighted mean code
+    codes: np.ndarray  # (N, K) float32 weighted mean code of the points with codes; NaN where none has codes
     colours: np.ndarray  # (N, 3) uint8 weighted mean RGB
     weight: np.ndarray  # (N,) float64 summed weight
     count: np.ndarray  # (N,) int64 points fused
+    code_weight: np.ndarray | None = None  # (N,) float64 summed weight of the points with codes (0: the voxel has
+    # no code); None: every voxel has one (a map built elsewhere)
 
 
 class VoxelGrid:
@@ -118,7 +125,8 @@ class VoxelGrid:
         old = getattr(self, "_weight", None)
         fields = {"_keys": ((cap,), np.int64), "_weight": ((cap,), np.float64), "_xyz": ((cap, 3), np.float64),
                   "_codes": ((cap, self.code_dim), np.float32), "_colours": ((cap, 3), np.float32),
-                  "_count": ((cap,), np.int64)}
+                  "_count": ((cap,), np.int64), "_code_weight": ((cap,), np.float64),
+                  "_code_count": ((cap,), np.int64)}
         for name, (shape, dtype) in fields.items():
             arr = np.zeros(shape, dtype)
             if old is not None:
@@ -152,28 +160,45 @@ class VoxelGrid:
         return codes
 
     def apply(self, c: Contribution, sign: int, cmap: CodeMap | None = None) -> None:
-        """Add (sign=+1) or subtract (sign=−1) a keyframe's contribution, its codes mapped by ``cmap``."""
-        codes = self._grid_codes(c, cmap)
+        """Add (sign=+1) or subtract (sign=−1) a keyframe's contribution, its codes (if any) mapped by ``cmap``."""
+        if c.codes is not None and c.keys.size and self.code_dim == 0:
+            self.set_code_dim(c.codes.shape[1] if cmap is None else cmap.matrix.shape[0])
+        codes = None if c.codes is None else self._grid_codes(c, cmap)
         slots = self._slots(c.keys)  # keys are distinct within a contribution: plain fancy indexing
         self._weight[slots] += sign * c.weight
         self._xyz[slots] += sign * c.xyz
-        self._codes[slots] += sign * codes
         self._colours[slots] += sign * c.colours
         self._count[slots] += sign * c.count
+        if codes is not None and c.keys.size:
+            self._codes[slots] += sign * codes
+            self._code_weight[slots] += sign * c.weight
+            self._code_count[slots] += sign * c.count
+            uncoded = slots[self._code_count[slots] <= 0]  # cleared exactly: no rounding residue poses as a code
+            for arr in (self._codes, self._code_weight, self._code_count):
+                arr[uncoded] = 0
         empty = slots[self._count[slots] <= 0]
         for slot in empty.tolist():
             del self._slot_of[int(self._keys[slot])]
             self._free.append(slot)
-        for arr in (self._weight, self._xyz, self._codes, self._colours, self._count):
+        for arr in (self._weight, self._xyz, self._codes, self._colours, self._count, self._code_weight,
+                    self._code_count):
             arr[empty] = 0
 
+    def set_code_dim(self, code_dim: int) -> None:
+        """Give a grid that has no code sums yet (only keyframes without codes fused so far) its code size."""
+        if self._code_count.any():
+            raise ValueError("the grid already holds code sums; use recode to change their size")
+        self.code_dim = code_dim
+        self._codes = np.zeros((self._keys.shape[0], code_dim), np.float32)
+
     def recode(self, parts: list[tuple[Contribution, CodeMap | None]], code_dim: int) -> None:
-        """Re-sum every voxel's codes in a new version (``code_dim`` = its K) from all the contributions now
-        applied, each with the map from its own version; weights, positions and colours are untouched."""
+        """Re-sum every voxel's codes in a new version (``code_dim`` = its K) from all the contributions with
+        codes now applied, each with the map from its own version; weights, positions and colours are untouched."""
         self.code_dim = code_dim
         codes = np.zeros((self._keys.shape[0], code_dim), np.float64)
         for c, cmap in parts:
-            codes[self._slots(c.keys)] += self._grid_codes(c, cmap)
+            if c.codes is not None:
+                codes[self._slots(c.keys)] += self._grid_codes(c, cmap)
         self._codes = codes.astype(np.float32)
 
     def __len__(self) -> int:
@@ -185,8 +210,11 @@ class VoxelGrid:
         slots = slots[np.argsort(self._keys[slots], kind="stable")]
         w = self._weight[slots]
         inv = np.where(w > 0, 1.0 / np.where(w > 0, w, 1.0), 0.0)
+        cw = self._code_weight[slots]
+        coded = self._code_count[slots] > 0
+        code_inv = np.where(coded, 1.0 / np.where(coded, cw, 1.0), np.nan)
         colours = np.clip(np.rint(self._colours[slots] * inv[:, None]), 0, 255).astype(np.uint8)
         keys = self._keys[slots]
         return FusedVoxels(keys, voxel_coords(keys), self._xyz[slots] * inv[:, None],
-                           (self._codes[slots] * inv[:, None]).astype(np.float32), colours, w,
-                           self._count[slots].copy())
+                           (self._codes[slots] * code_inv[:, None]).astype(np.float32), colours, w,
+                           self._count[slots].copy(), cw.copy())

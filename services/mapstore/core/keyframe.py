@@ -22,27 +22,38 @@ class KeyframeContent:
     Fields:
         kf_id: keyframe id (its frame `seq`), int.
         t_ns: timestamp, int64 nanoseconds.
-        codes: (h, w, K) float16 PCA codes on the 1/8 grid.
+        codes: (h, w, K) float16 PCA codes on the 1/8 grid; None while they have not arrived (features sends a
+            keyframe's geometry at once and its codes later): the keyframe is fused for geometry only.
         colours: (h, w, 3) uint8 RGB sampled at the grid cell centres.
         image_hw: (H, W) working resolution in pixels (H = 8h, W = 8w).
-        pca_version: version of the PCA basis the codes belong to.
+        pca_version: version of the PCA basis the codes belong to (-1 without codes).
     """
 
     kf_id: int
     t_ns: int
-    codes: np.ndarray
+    codes: np.ndarray | None
     colours: np.ndarray
     image_hw: tuple[int, int]
     pca_version: int
 
     def __post_init__(self) -> None:
-        h, w = self.codes.shape[:2]
-        if self.codes.ndim != 3:
-            raise ValueError(f"codes must be (h, w, K), got {self.codes.shape}")
-        if self.colours.shape != (h, w, 3):
-            raise ValueError(f"colours must be ({h}, {w}, 3), got {self.colours.shape}")
+        if self.colours.ndim != 3 or self.colours.shape[2] != 3:
+            raise ValueError(f"colours must be (h, w, 3), got {self.colours.shape}")
+        h, w = self.colours.shape[:2]
+        if self.codes is not None and (self.codes.ndim != 3 or self.codes.shape[:2] != (h, w)):
+            raise ValueError(f"codes must be ({h}, {w}, K) like the colours, got {self.codes.shape}")
         if tuple(self.image_hw) != (8 * h, 8 * w):
             raise ValueError(f"image_hw {self.image_hw} does not match a {h}x{w} grid")
+
+    @property
+    def has_codes(self) -> bool:
+        """Whether the keyframe's codes are in (else it contributes geometry and colours only)."""
+        return self.codes is not None
+
+    @property
+    def grid_shape(self) -> tuple[int, int]:
+        """(h, w) of the 1/8 grid."""
+        return self.colours.shape[:2]
 
 
 @dataclass(frozen=True)

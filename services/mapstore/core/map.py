@@ -8,6 +8,11 @@ carved cells changed are re-fused.
 Codes stay in the PCA version each keyframe was coded with; the fused map is in one version, `code_version`
 (the latest basis), reached from each keyframe's own version by one affine map (`set_code_space`). A keyframe
 whose version has no map yet is held like one without depth or pose: kept, not fused, fused once it has one.
+
+A keyframe without codes (features sends a keyframe's geometry at once and its codes later) is fused for
+geometry at once: points, colours and depth evidence for carving, no code sums (code weight 0), no semantic
+carving evidence either way. `set_codes` gives it its codes later and re-fuses just it (its neighbours' depth
+consistency does not depend on codes; the earlier keyframes it may carve are re-checked).
 """
 
 from __future__ import annotations
@@ -35,7 +40,7 @@ class KeyframePoints(NamedTuple):
     cells: np.ndarray  # (M,) int64 flat grid cell index r·w + c
     xyz: np.ndarray  # (M, 3) float64 world coordinates under the keyframe's latest pose
     weight: np.ndarray  # (M,) float64 confidence × static × consistency (carved points are left out)
-    codes: np.ndarray  # (M, K) float16 in the keyframe's own PCA version (content.pca_version)
+    codes: np.ndarray | None  # (M, K) float16 in the keyframe's own PCA version (content.pca_version); None: no codes
     colours: np.ndarray  # (M, 3) uint8
 
 
@@ -75,13 +80,15 @@ class KeyframeMap:
         if voxel_size is None and params.fusion.voxel_mode == "absolute":
             self.voxel_size = params.fusion.voxel_size
         self._grid: VoxelGrid | None = None
-        self._contrib: dict[int, tuple[Contribution, int]] = {}  # per fused keyframe: (sums, their PCA version)
+        self._contrib: dict[int, tuple[Contribution, int | None]] = {}  # per fused keyframe: (sums, their PCA
+        # version; None for a keyframe without codes)
         self.code_version: int | None = None  # PCA version of the fused codes; None until a basis is known
         self._code_maps: dict[int, CodeMap] = {}  # PCA version -> map of its codes into code_version
         self._dirty: set[int] = set()
         self._recheck: set[int] = set()  # keyframes whose carving may have changed
         self._carved: dict[int, np.ndarray] = {}  # per fused keyframe: (C,) int64 cells carved when it was fused
-        self._unit_codes: dict[int, np.ndarray] = {}  # per keyframe: (h, w, K) unit codes in code_version (carving)
+        self._unit_codes: dict[int, np.ndarray | None] = {}  # per keyframe: (h, w, K) unit codes in code_version
+        # (carving); None for a keyframe without codes
         self._views: dict[int, CarveView] = {}  # per keyframe: itself as a carving witness (until it is touched)
         self._ready: list[int] = []  # sorted ids with content, depth and pose
         self._fused_cache: FusedVoxels | None = None
@@ -89,10 +96,33 @@ class KeyframeMap:
 
     # ----- inputs -------------------------------------------------------------------------
     def add_content(self, content: KeyframeContent) -> None:
-        """Add or replace a keyframe's codes and colours."""
+        """Add or replace a keyframe's codes (None: not yet in) and colours."""
         self.contents[content.kf_id] = content
         self._unit_codes.pop(content.kf_id, None)
         self._touch(content.kf_id)
+
+    def set_codes(self, kf_id: int, codes: np.ndarray, pca_version: int) -> None:
+        """Give a keyframe (content already added, e.g. without codes) its (h, w, K) codes in ``pca_version``.
+
+        Only the keyframe itself is re-fused (its points' code sums and its own semantic carving) and the earlier
+        keyframes it witnesses for are re-checked; its neighbours' depth consistency does not depend on codes."""
+        old = self.contents[kf_id]
+        content = KeyframeContent(kf_id, old.t_ns, codes, old.colours, old.image_hw, pca_version)
+        was_ready = self._is_ready(kf_id)
+        self.contents[kf_id] = content
+        self._unit_codes.pop(kf_id, None)
+        if self._is_ready(kf_id) != was_ready:  # e.g. codes of a version with no map yet: held, neighbours change
+            self._touch(kf_id)
+            return
+        self._views.pop(kf_id, None)
+        self._dirty.add(kf_id)
+        if self.params.carving.semantic:
+            self._recheck.update(self._earlier(kf_id))
+
+    @property
+    def without_codes(self) -> list[int]:
+        """Keyframes whose codes have not arrived (fused for geometry only), ascending."""
+        return sorted(k for k, c in self.contents.items() if not c.has_codes)
 
     def set_depth(self, kf_id: int, depth: KeyframeDepth) -> None:
         """Set a keyframe's latest disparity/weights (its grid must match its codes' grid)."""
@@ -118,8 +148,8 @@ class KeyframeMap:
 
     def _is_ready(self, kf_id: int) -> bool:
         c, d = self.contents.get(kf_id), self.depths.get(kf_id)
-        return (c is not None and d is not None and kf_id in self.poses and c.codes.shape[:2] == d.disparity.shape
-                and (not self.versioned or c.pca_version in self._code_maps))
+        return (c is not None and d is not None and kf_id in self.poses and c.grid_shape == d.disparity.shape
+                and (not self.versioned or not c.has_codes or c.pca_version in self._code_maps))
 
     def set_code_space(self, version: int, maps: dict[int, CodeMap]) -> None:
         """Put the fused map's codes into PCA version ``version``; ``maps[v]`` maps version v's (…, K_v) codes into
@@ -130,7 +160,7 @@ class KeyframeMap:
             raise ValueError(f"code maps must include the target version {version}")
         if not self.versioned:
             raise ValueError("set_code_space needs a map built with versioned=True")
-        missing = {v for _, v in self._contrib.values()} - set(maps)
+        missing = {v for _, v in self._contrib.values() if v is not None} - set(maps)
         if missing:
             raise ValueError(f"no code map for fused versions {sorted(missing)}")
         held = [k for k in self.contents if not self._is_ready(k)]
@@ -140,7 +170,7 @@ class KeyframeMap:
         self._unit_codes.clear()
         self._views.clear()
         if self._grid is not None:
-            self._grid.recode([(c, self._code_maps[v]) for c, v in self._contrib.values()],
+            self._grid.recode([(c, self._code_maps[v]) for c, v in self._contrib.values() if v is not None],
                               maps[version].matrix.shape[0])
         for kf_id in held:
             if self._is_ready(kf_id):
@@ -150,8 +180,9 @@ class KeyframeMap:
 
     @property
     def held(self) -> list[int]:
-        """Keyframes with content whose PCA version has no code map yet (kept, not fused), ascending."""
-        return sorted(k for k, c in self.contents.items() if self.versioned and c.pca_version not in self._code_maps)
+        """Keyframes with codes whose PCA version has no code map yet (kept, not fused), ascending."""
+        return sorted(k for k, c in self.contents.items()
+                      if self.versioned and c.has_codes and c.pca_version not in self._code_maps)
 
     def _touch(self, kf_id: int) -> None:
         """Mark a keyframe and its consistency neighbours dirty; keep the ready list sorted."""
@@ -199,14 +230,17 @@ class KeyframeMap:
         codes = self._fused_space_codes(kf_id) if self.params.carving.semantic else None
         return CarveView(np.linalg.inv(self.poses[kf_id]), d.disparity, d.intrinsics, reliability, codes)
 
-    def _fused_space_codes(self, kf_id: int) -> np.ndarray:
+    def _fused_space_codes(self, kf_id: int) -> np.ndarray | None:
         """(h, w, K) float32 unit codes of a keyframe in the fused map's code space (cached until its content or
-        the code space changes); an unversioned map compares codes as they come."""
+        the code space changes), None without codes; an unversioned map compares codes as they come."""
         if kf_id not in self._unit_codes:
             content = self.contents[kf_id]
-            cmap = self._code_maps.get(content.pca_version)
-            codes = content.codes if cmap is None or cmap.is_identity else convert_codes(content.codes, cmap)
-            self._unit_codes[kf_id] = unit_codes(codes)
+            if not content.has_codes:
+                self._unit_codes[kf_id] = None
+            else:
+                cmap = self._code_maps.get(content.pca_version)
+                codes = content.codes if cmap is None or cmap.is_identity else convert_codes(content.codes, cmap)
+                self._unit_codes[kf_id] = unit_codes(codes)
         return self._unit_codes[kf_id]
 
     # ----- fusion -------------------------------------------------------------------------
@@ -230,17 +264,16 @@ class KeyframeMap:
         carved = self._carved_mask(xyz, cand.cells, kf_id)
         keep = (weight >= self.params.points.min_weight) & ~carved
         cells = cand.cells[keep]
-        k = content.codes.shape[2]
-        points = KeyframePoints(cells, xyz[keep], weight[keep], content.codes.reshape(-1, k)[cells],
-                                content.colours.reshape(-1, 3)[cells])
+        codes = None if content.codes is None else content.codes.reshape(-1, content.codes.shape[2])[cells]
+        points = KeyframePoints(cells, xyz[keep], weight[keep], codes, content.colours.reshape(-1, 3)[cells])
         return points, cand.cells[carved]
 
     def _carved_mask(self, xyz: np.ndarray, cells: np.ndarray, kf_id: int) -> np.ndarray:
         """(C,) bool: which of a keyframe's candidate points (world xyz (C, 3), flat cells (C,)) are carved."""
         views = [self._carve_view(j) for j in self._later(kf_id)]
         codes = None
-        if self.params.carving.semantic:
-            own = self._fused_space_codes(kf_id)
+        own = self._fused_space_codes(kf_id) if self.params.carving.semantic else None
+        if own is not None:  # a keyframe without codes is carved on depth evidence alone
             codes = own.reshape(-1, own.shape[2])[cells]
         return free_space_votes(xyz, views, self.params.carving, codes).carved
 
@@ -276,10 +309,10 @@ class KeyframeMap:
                 continue
             self._ensure_voxel_size(kf_id)
             pts, self._carved[kf_id] = self._points(kf_id)
-            version = self.contents[kf_id].pca_version
-            cmap = self._code_maps.get(version)  # None: unversioned map, codes as they are
+            version = self.contents[kf_id].pca_version if pts.codes is not None else None
+            cmap = self._code_maps.get(version)  # None: unversioned map (codes as they are), or no codes
             if self._grid is None:
-                self._grid = VoxelGrid(pts.codes.shape[1] if cmap is None else cmap.matrix.shape[0])
+                self._grid = VoxelGrid(self._code_dim(pts.codes, cmap))
             contribution = make_contribution(pts.xyz, pts.weight, pts.codes, pts.colours, self.voxel_size)
             self._grid.apply(contribution, +1, cmap)
             self._contrib[kf_id] = (contribution, version)
@@ -288,14 +321,22 @@ class KeyframeMap:
             self._fused_cache = None
         return RefreshReport(dirty, len(self._grid) if self._grid is not None else 0)
 
+    def _code_dim(self, codes: np.ndarray | None, cmap) -> int:
+        """K of the fused codes: the current version's, else the codes' own, else any content's (0: none known
+        yet; the grid takes it from the first codes it is given)."""
+        if cmap is not None:
+            return cmap.matrix.shape[0]
+        if self.code_version is not None:
+            return self._code_maps[self.code_version].matrix.shape[0]
+        if codes is not None:
+            return codes.shape[1]
+        return next((c.codes.shape[2] for c in self.contents.values() if c.has_codes), 0)
+
     def fused(self) -> FusedVoxels:
         """The fused map (one point per occupied voxel), cached until the next change."""
         if self._fused_cache is None:
             if self._grid is None:
-                k = next(iter(self.contents.values())).codes.shape[2] if self.contents else 0
-                if self.code_version is not None:
-                    k = self._code_maps[self.code_version].matrix.shape[0]
-                self._fused_cache = VoxelGrid(k, 1).fused()
+                self._fused_cache = VoxelGrid(self._code_dim(None, None), 1).fused()
             else:
                 self._fused_cache = self._grid.fused()
         return self._fused_cache

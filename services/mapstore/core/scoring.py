@@ -4,6 +4,10 @@ With basis (μ: (D,), V: (K, D)) a code z decodes to f = μ + Vᵀz, and for a q
     cos(f, t) = (μ·t + z·(V t)) / (‖f‖ ‖t‖),   ‖f‖² = ‖μ‖² + 2 z·(Vμ) + zᵀ(V Vᵀ)z.
 Per point we precompute a = [z/‖f‖, 1/‖f‖] (N, K+1); per query b = [V t, μ·t]/‖t‖ (K+1,),
 so the scores are one matrix product a·bᵀ.
+
+Points without a code (voxels only keyframes whose codes have not arrived saw) are absent from scoring: their
+score is NaN, they are never among the top k, and `argmax` gives them label −1 (not the score of the zero code,
+which would be the PCA mean's).
 """
 
 from __future__ import annotations
@@ -64,12 +68,15 @@ def decode_codes(codes: np.ndarray, basis: PcaBasis) -> np.ndarray:
 class ScoringIndex:
     """Precomputed per-point terms for scoring N points against query vectors."""
 
-    def __init__(self, codes: np.ndarray, basis: PcaBasis, device: str = "auto") -> None:
+    def __init__(self, codes: np.ndarray, basis: PcaBasis, device: str = "auto",
+                 valid: np.ndarray | None = None) -> None:
         """
         Args:
             codes: (N, K) float codes of the points (PCA space of `basis`).
             basis: the basis the codes were made with.
             device: torch device name or "auto".
+            valid: (N,) bool, the points that have a code (None: all, except non-finite codes); the others score
+                NaN and are never ranked.
         """
         if codes.ndim != 2 or codes.shape[1] != basis.rank:
             raise ValueError(f"codes must be (N, {basis.rank}), got {codes.shape}")
@@ -78,6 +85,14 @@ class ScoringIndex:
         v = basis.components.astype(np.float64)
         mu = basis.mean.astype(np.float64)
         z = codes.astype(np.float64)
+        ok = np.all(np.isfinite(z), axis=1)
+        if valid is not None:
+            if np.shape(valid) != ok.shape:
+                raise ValueError(f"valid must be ({codes.shape[0]},), got {np.shape(valid)}")
+            ok &= np.asarray(valid, bool)
+        z = np.where(ok[:, None], z, 0.0)
+        self.n_valid = int(ok.sum())
+        self._absent = None if ok.all() else torch.from_numpy(~ok).to(self.device)
         norm2 = mu @ mu + 2.0 * z @ (v @ mu) + np.einsum("nk,kl,nl->n", z, v @ v.T, z)
         inv = 1.0 / np.sqrt(np.maximum(norm2, _EPS))
         a = np.concatenate([z * inv[:, None], inv[:, None]], axis=1).astype(np.float32)
@@ -107,20 +122,30 @@ class ScoringIndex:
             (Q, N) float32 cosine similarities.
         """
         b = self._query_terms(queries)
-        return (b @ self._a.T).cpu().numpy()
+        s = b @ self._a.T
+        if self._absent is not None:
+            s = s.masked_fill(self._absent[None], float("nan"))
+        return s.cpu().numpy()
 
     def _blocks(self, queries: np.ndarray, chunk: int):
+        """(start, (Q, n) scores of points start..start+n); points without a code score −inf here."""
         b = self._query_terms(queries)
         for start in range(0, len(self), chunk):
-            yield start, b @ self._a[start : start + chunk].T
+            s = b @ self._a[start : start + chunk].T
+            if self._absent is not None:
+                s = s.masked_fill(self._absent[None, start : start + chunk], float("-inf"))
+            yield start, s
 
     def topk(self, queries: np.ndarray, k: int, chunk: int = 262_144) -> TopK:
         """The k best points per query, scored in blocks of `chunk` points (no Q×N matrix).
 
         Returns:
-            TopK with (Q, min(k, N)) indices and scores, best first.
+            TopK with (Q, min(k, points with a code)) indices and scores, best first.
         """
-        k = min(k, len(self))
+        k = min(k, self.n_valid)
+        if k <= 0:
+            q = 1 if np.asarray(queries).ndim == 1 else len(queries)
+            return TopK(np.zeros((q, 0), np.int64), np.zeros((q, 0), np.float32))
         best_s: torch.Tensor | None = None
         best_i: torch.Tensor | None = None
         for start, s in self._blocks(queries, chunk):
@@ -141,7 +166,8 @@ class ScoringIndex:
         Args:
             queries: (L, D) label vectors.
         Returns:
-            labels (N,) int64 index into the L queries, scores (N,) float32.
+            labels (N,) int64 index into the L queries (−1 for a point without a code), scores (N,) float32 (NaN
+            for those).
         """
         labels, scores = [], []
         for _, s in self._blocks(queries, chunk):
@@ -150,4 +176,8 @@ class ScoringIndex:
             scores.append(best.values.cpu().numpy())
         if not labels:
             return np.zeros(0, np.int64), np.zeros(0, np.float32)
-        return np.concatenate(labels).astype(np.int64), np.concatenate(scores)
+        label, score = np.concatenate(labels).astype(np.int64), np.concatenate(scores)
+        if self._absent is not None:
+            absent = self._absent.cpu().numpy()
+            label[absent], score[absent] = -1, np.nan
+        return label, score
