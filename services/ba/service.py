@@ -66,7 +66,10 @@ class BaState:
     early_codes: dict[int, KeyframeCodes] = field(default_factory=dict)  # codes that came before their keyframe
     keyframe_backlog: int = 0  # keyframes waiting in the inbox (set by the loop; real-time merging)
     merged: int = 0  # real-time keyframes merged as frames because mapping was behind
+    merged_in_a_row: int = 0
     dropped: int = 0  # frames the inboxes dropped by the real-time policy (set at end of stream)
+    # frame seq -> (keyframe seq, keyframe_from_cam) from the tracking thread, which fills it
+    anchors: dict[int, tuple[int, torch.Tensor]] = field(default_factory=dict)
 
 
 def build_state(cfg: BaSettings) -> BaState:
@@ -75,11 +78,12 @@ def build_state(cfg: BaSettings) -> BaState:
 
 
 def handle_keyframe(state: BaState, msg: Keyframe, cfg: BaSettings) -> Outputs:
-    if msg.realtime and state.keyframe_backlog >= cfg.realtime_keyframe_backlog and state.frontend.initialised:
+    if _merge(state, msg, cfg):
         state.merged += 1  # mapping is behind a live camera: this one is posed as a frame, not mapped
+        state.merged_in_a_row += 1
         log.info("keyframe merged as a frame (mapping behind)", extra={"stream": msg.stream, "seq": msg.seq})
-        state.last_seq = max(state.last_seq, msg.seq)
-        return _outputs(state, msg, state.frontend.add_frame(FrameInput(msg.seq, msg.t_ns, msg.image)), final=False)
+        return handle_frame_lite(state, msg, cfg)
+    state.merged_in_a_row = 0
     early = state.early_codes.pop(msg.seq, None)
     codes, version = (msg.codes, msg.pca_version) if early is None else (early.codes, early.pca_version)
     native = None if codes is None else NativeCodes(version, codes)
@@ -94,6 +98,16 @@ def handle_keyframe(state: BaState, msg: Keyframe, cfg: BaSettings) -> Outputs:
     state.keyframes += 1
     state.last_seq = max(state.last_seq, msg.seq)
     return _outputs(state, msg, update, final=False)
+
+
+def _tracked(state: BaState, seq: int) -> tuple[int, torch.Tensor] | None:
+    """Tracking's anchor of frame ``seq`` (None when tracking has not posed it), forgetting older ones mapping
+    never asked for (frames dropped on the way to mapping)."""
+    anchor = state.anchors.pop(seq, None)
+    if len(state.anchors) > 64:
+        for old in [s for s in list(state.anchors) if s < seq]:
+            state.anchors.pop(old, None)
+    return anchor
 
 
 def handle_codes(state: BaState, msg: KeyframeCodes, cfg: BaSettings) -> Outputs:
@@ -112,9 +126,20 @@ def handle_codes(state: BaState, msg: KeyframeCodes, cfg: BaSettings) -> Outputs
     return []
 
 
-def handle_frame_lite(state: BaState, msg: FrameLite, cfg: BaSettings) -> Outputs:
-    update = state.frontend.add_frame(FrameInput(msg.seq, msg.t_ns, msg.image))
+def _merge(state: BaState, msg: Keyframe, cfg: BaSettings) -> bool:
+    """Real time, mapping behind: keyframes wait in the inbox. This one is merged as a frame unless that would
+    leave more than ``realtime_max_merged`` in a row between mapped keyframes (tracking and the next keyframe's
+    flow need them close enough)."""
+    return (msg.realtime and state.frontend.initialised and state.keyframe_backlog >= cfg.realtime_keyframe_backlog
+            and state.merged_in_a_row < cfg.realtime_max_merged)
+
+
+def handle_frame_lite(state: BaState, msg: FrameLite | Keyframe, cfg: BaSettings) -> Outputs:
     state.last_seq = max(state.last_seq, msg.seq)
+    tracked = _tracked(state, msg.seq)
+    if msg.realtime and tracked is None:
+        return []  # live, mapping spends no flow on frames: this one keeps the pose tracking gave it
+    update = state.frontend.add_frame(FrameInput(msg.seq, msg.t_ns, msg.image, tracked))
     return _outputs(state, msg, update, final=False)
 
 
@@ -223,7 +248,7 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
     for name, kind in ((keys.KEYFRAME, Keyframe), (keys.FRAME_LITE, FrameLite)):
         bus.subscribe(topic(name), to_both, [kind])
     tracking = TrackingLoop(Tracker(cfg.frontend_params().motion, cfg.flow_params()), bus, track_box, cfg.stream,
-                            cfg.tracking_nice)
+                            state.anchors, cfg.tracking_nice)
     tracking.start()
     bus.ready()
     nice_this_thread(cfg.mapping_nice)

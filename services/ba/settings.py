@@ -53,6 +53,8 @@ class BaSettings(BASettings):
     realtime_keyframe_backlog: int = 2
     """Real-time streams: when this many keyframes wait for mapping, the oldest is merged into the map as a
     frame (posed, not a BA keyframe) instead of queueing without bound. Lossless streams map every keyframe."""
+    realtime_max_merged: int = 3
+    """At most this many keyframes in a row are merged; then one is mapped whatever the backlog."""
     tracking_nice: int = 0
     """Niceness of the tracking thread (Linux; per thread). Tracking comes first on a shared CPU."""
     mapping_nice: int = 5

@@ -11,11 +11,13 @@ import threading
 import time
 
 import numpy as np
+import torch
 
 from services.common import keys
 from services.common.bus import Bus, Inbox
 from services.common.lifecycle import nice_this_thread
 from services.common.schema import Eos, FrameLite, Keyframe, Poses
+from services.ba.core import se3
 from services.ba.frontend.tracker import Reference, Tracker
 
 log = logging.getLogger(__name__)
@@ -25,13 +27,17 @@ POLL_S = 0.05
 class TrackingLoop:
     """Runs :class:`Tracker` on a thread over ``inbox`` (frame_lite and keyframe messages of one stream)."""
 
-    def __init__(self, tracker: Tracker, bus: Bus, inbox: Inbox, stream: str, niceness: int = 0):
+    def __init__(self, tracker: Tracker, bus: Bus, inbox: Inbox, stream: str,
+                 anchors: dict[int, tuple[int, torch.Tensor]], niceness: int = 0):
         self.tracker, self.bus, self.inbox, self.stream, self.niceness = tracker, bus, inbox, stream, niceness
         self._lock = threading.Lock()
         self._pending_ref: Reference | None = None
         self._reset = False
         self.tracked = 0  # frames posed by tracking in this stream
         self.last_seq = -1  # highest seq handled (for progress reports)
+        # seq -> (reference keyframe seq, (4, 4) reference_from_cam): mapping anchors the frame there instead of
+        # aligning it again (dict operations are atomic; mapping pops what it uses, reset clears the rest)
+        self.anchors = anchors
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="tracking", daemon=True)
 
@@ -60,6 +66,7 @@ class TrackingLoop:
                 if self._reset:
                     self.tracker.reset()
                     self.tracked, self._reset = 0, False
+                    self.anchors.clear()
                 ref, self._pending_ref = self._pending_ref, None
             if ref is not None:
                 self.tracker.set_reference(ref)
@@ -77,6 +84,8 @@ class TrackingLoop:
         if out is None:
             return
         self.tracked += 1
+        if out.ok:
+            self.anchors[msg.seq] = (out.ref_seq, se3.inverse(self.tracker.reference.pose) @ out.pose)
         pose = out.pose.detach().cpu().numpy().astype(np.float64)[None]
         self.bus.publish(keys.topic(self.stream, keys.POSE), Poses(
             self.stream, msg.seq, time.time_ns(), frame_seqs=np.array([msg.seq], np.int64),

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from ..common import keys
-from ..common.bus import Bus
+from ..common.bus import Bus, Inbox
 from ..common.models.backbones import normalise_rgb
 from ..common.device import resolve_device
 from ..common.models.loaders import load_backbone, load_depth_model
@@ -68,6 +68,7 @@ class FeaturesState:
     # since, as (seq, is_keyframe), to count how far each one is behind
     downstream: dict[str, tuple[int, float]] = field(default_factory=dict)
     sent: deque = field(default_factory=deque)
+    inbox: Inbox | None = None  # the service loop's, whose real-time drops count for this stream
 
 
 def build_state(cfg: FeaturesSettings) -> FeaturesState:
@@ -101,7 +102,7 @@ def decode_image(msg: Frame) -> np.ndarray:
 def handle_frame(state: FeaturesState, msg: Frame, cfg: FeaturesSettings) -> Outputs:
     outputs = _frame(state, msg, cfg)
     state.frames_seen += 1
-    if state.pending_eos is not None and state.frames_seen >= state.pending_eos.count:
+    if state.pending_eos is not None and state.frames_seen + state.dropped >= state.pending_eos.count:
         outputs += _finish(state, state.pending_eos)
     return outputs
 
@@ -148,7 +149,7 @@ def handle_eos(state: FeaturesState, msg: Eos, cfg: FeaturesSettings) -> Outputs
     """Ingest ended: finish once every frame it sent has arrived (see ``eos_wait_s``)."""
     if msg.stage != "ingest":
         return []
-    if state.frames_seen >= msg.count:
+    if state.frames_seen + state.dropped >= msg.count:  # frames the inbox dropped (real time) are not coming
         return _finish(state, msg)
     state.pending_eos, state.eos_deadline = msg, time.monotonic() + cfg.eos_wait_s
     return []
@@ -186,6 +187,9 @@ def closing_outputs(state: FeaturesState) -> Outputs:
     eos = Eos(msg.stream, msg.seq, time.time_ns(), stage="features", count=state.published, reason=msg.reason,
               dropped=state.dropped, codes_skipped=state.semantics.skipped)
     state.frames_seen, state.published, state.closing = 0, 0, None  # a new stream may follow on the same key
+    state.dropped = 0
+    if state.inbox is not None:
+        state.inbox.dropped_by_kind.clear()
     state.semantics.skipped = 0
     state.sent.clear()
     return outputs + [(keys.topic(msg.stream, keys.EOS), eos)]
@@ -247,6 +251,7 @@ def run(cfg: FeaturesSettings, bus: Bus, stop: threading.Event, state: FeaturesS
     topic = lambda name: keys.topic(cfg.stream, name)  # noqa: E731
     inbox = bus.inbox({topic(keys.FRAME): [Frame], topic(keys.INTRINSICS): [Intrinsics], topic(keys.EOS): [Eos]},
                       maxsize=4 * cfg.credit_window + 16, droppable=(Frame,))
+    state.inbox = inbox
     bus.subscribe(topic(keys.PROGRESS), lambda d: on_progress(state, d.msg), [Credit])
     # late joiners (a restarted mapstore) ask for the current basis, consumers that missed one for its version
     bus.serve(topic(keys.PCA), lambda key, params, payload: answer_pca(state, params))

@@ -45,6 +45,7 @@ class FrameInput(NamedTuple):
     seq: int
     t_ns: int
     image: np.ndarray  # (h', w') uint8 grey (or RGB), same aspect ratio as the working image
+    tracked: tuple[int, torch.Tensor] | None = None  # (keyframe seq, (4, 4) keyframe_from_cam) from tracking
 
 
 class GraphUpdate(NamedTuple):
@@ -126,21 +127,29 @@ class Frontend:
         g = self.graph
         if g is None or not self.initialised or len(g) == 0:
             return None
+        previous = (g.stamps[-2], g.poses[-2].clone()) if len(g) > 1 else None
         return Reference(g.seqs[-1], g.stamps[-1], g.poses[-1].clone(), g.disparity[-1].clone(),
-                         g.intrinsics.clone(), g.images[-1])
+                         g.intrinsics.clone(), g.images[-1], previous)
 
     def add_frame(self, frame: FrameInput) -> Update:
         image = core_flow.to_grey(np.asarray(frame.image))
         if self.graph is not None and frame.seq in self.graph.seqs:
             raise ValueError(f"frame {frame.seq} is already a keyframe")
-        self.frames.add(FrameRecord(frame.seq, frame.t_ns, image))
+        record = FrameRecord(frame.seq, frame.t_ns, image)
+        if frame.tracked is not None and self.graph is not None and frame.tracked[0] in self.graph.seqs:
+            # tracking already aligned it to a keyframe: anchored there, it moves with every BA of that keyframe
+            # and needs no flow of its own (its pose went out when it was tracked)
+            record.anchor, record.anchor_from_cam = frame.tracked[0], frame.tracked[1].to(self.device)
+            self.frames.add(record)
+            return Update()
+        self.frames.add(record)
         if not self.initialised or frame.seq > self.graph.seqs[-1]:
             return Update()  # aligned once the keyframe after it exists
         self.frames.align(self.graph, frame.seq)
         return Update(poses=self._pose_update([frame.seq]))
 
     def finish(self) -> Update:
-        """End of stream: BA over every keyframe still held, their frames aligned again; the final state."""
+        """End of stream: BA over every keyframe still held, frames not aligned yet aligned; the final state."""
         g = self.graph
         if g is None or len(g) == 0:
             return Update()
@@ -151,7 +160,7 @@ class Frontend:
             everything = list(range(len(g)))
             pairs = sorted(set(g.pairs(everything, self.params.graph.global_radius)))
             g.run(everything, pairs, self._ba_params(everything, self.params.global_ba))
-        for seq in self.frames.frames:
+        for seq in self.frames.pending(g):
             self.frames.align(g, seq)
         return self._update(list(range(len(g))), every_frame=True)
 

@@ -36,6 +36,7 @@ class Reference(NamedTuple):
     disparity: torch.Tensor  # (h, w) float64 grid disparity
     intrinsics: torch.Tensor  # (4,) float64 grid intrinsics
     image: np.ndarray  # (H, W) uint8 grey at working resolution
+    previous: tuple[int, torch.Tensor] | None = None  # (t_ns, world_from_cam) of the keyframe before: its motion
 
 
 class Tracked(NamedTuple):
@@ -44,6 +45,17 @@ class Tracked(NamedTuple):
     pose: torch.Tensor  # (4, 4) float64 world_from_cam
     ref_seq: int  # the keyframe it was aligned to
     ok: bool  # False: too little flow to align; the pose is the constant-velocity prediction
+
+
+MAX_EXTRAPOLATION = 8.0  # a prediction extends a motion at most this many times its own duration
+
+
+def _extrapolate(t0: int, pose0: torch.Tensor, t1: int, pose1: torch.Tensor, stamp: int) -> torch.Tensor:
+    """The motion from (t0, pose0) to (t1, pose1) continued at the same rate to ``stamp`` (geodesic in SE3)."""
+    span = t1 - t0
+    frac = (stamp - t1) / span if span > 0 else 0.0
+    rel = se3.inverse(pose0) @ pose1
+    return se3.orthonormalize(pose1 @ se3.exp(min(frac, MAX_EXTRAPOLATION) * se3.log(rel)))
 
 
 PHOTO_SIGMA = 0.5  # photometric disagreement (in image standard deviations) where confidence falls to exp(-1/2)
@@ -93,19 +105,15 @@ class Tracker:
         self.reference, self._ref_small, self._history = None, None, []
 
     def predict(self, stamp: int) -> torch.Tensor:
-        """Constant-velocity world_from_cam at time ``stamp`` from the last two tracked frames (the reference's
-        pose before that)."""
+        """Constant-velocity world_from_cam at time ``stamp``: from the last two tracked frames while tracking
+        holds, else from the motion between the reference and the keyframe before it (mapping's estimate)."""
         ref = self.reference
-        if not self._history:
-            return ref.pose
-        last = self._history[-1]
-        if len(self._history) < 2:
-            return last.pose
-        prev = self._history[-2]
-        span = last.stamp - prev.stamp
-        frac = (stamp - last.stamp) / span if span > 0 else 1.0
-        rel = se3.inverse(prev.pose) @ last.pose
-        return se3.orthonormalize(last.pose @ se3.exp(min(frac, 4.0) * se3.log(rel)))
+        hist = self._history
+        if len(hist) == 2 and hist[0].ok and hist[1].ok and hist[1].stamp >= ref.stamp:
+            return _extrapolate(hist[0].stamp, hist[0].pose, hist[1].stamp, hist[1].pose, stamp)
+        if ref.previous is not None:
+            return _extrapolate(*ref.previous, ref.stamp, ref.pose, stamp)
+        return ref.pose
 
     def track(self, seq: int, stamp: int, image: np.ndarray) -> Tracked | None:
         """Pose of frame ``seq`` (``image``: (h, w) grey or (h, w, 3), any size with the working aspect ratio);
