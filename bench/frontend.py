@@ -7,8 +7,13 @@ has ground truth, how many frames got a pose, keyframes, the focal length, secon
 the first pose (rotation and translation: a static camera must stay put). It is the quick loop for tuning the
 frontend; the full pipeline is ``kmvipe run SOURCE``.
 
+With ``--track`` every frame is first posed by the frame-rate tracker against the newest mapped keyframe, and
+anchored there as the ba service does (mapping then spends no flow on it); the report adds the ATE of those
+first (tracked) poses.
+
 Usage:
   python bench/frontend.py ../shared/data/kitti07_160 --focal 919.2      # KITTI 07 from a +30 % focal
+  python bench/frontend.py ../shared/data/kitti07_160 --track            # the live path's tracking too
   python bench/frontend.py ../shared/data/vtest/vtest.avi --max-frames 300
 """
 from __future__ import annotations
@@ -24,7 +29,9 @@ from tqdm import tqdm
 
 from services.ba.frontend import graph as frontend_graph
 from services.ba.frontend import motion as frontend_motion
+from services.ba.core import se3
 from services.ba.frontend.frontend import FrameInput, Frontend, KeyframeInput
+from services.ba.frontend.tracker import Tracker
 from services.ba.settings import BaSettings
 from services.common.config import LogSettings
 from services.common.lifecycle import tune_malloc_for_tensors
@@ -46,6 +53,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--verbose", action="store_true", help="print every keyframe's last steps")
     parser.add_argument("--out", type=Path, default=None, help="write the TUM trajectory here")
+    parser.add_argument("--track", action="store_true", help="pose every frame by tracking first (the live path)")
     args = parser.parse_args()
     tune_malloc_for_tensors()  # as the ba service does
     torch.set_num_threads(args.threads)
@@ -61,38 +69,75 @@ def main() -> None:
     start = fov_prior(height, width) if args.focal is None else Intrinsics(args.focal, args.focal, (width - 1) / 2,
                                                                              (height - 1) / 2)
     k_work = start.scaled(size.scale_x, size.scale_y).as_array()
+    latest: dict[int, tuple[int, np.ndarray]] = {}  # seq -> (t_ns, pose): the last pose published, as the runner keeps
+    first: dict[int, tuple[int, np.ndarray]] = {}  # seq -> the first pose (tracking's with --track)
+    settings = BaSettings()
+    tracker = Tracker(settings.frontend_params().motion, settings.flow_params()) if args.track else None
+
+    def keep(update) -> None:
+        if update.poses is not None:
+            for seq, stamp, pose in zip(update.poses.frame_seqs, update.poses.stamps_ns, update.poses.poses):
+                latest[int(seq)] = (int(stamp), pose)
+                first.setdefault(int(seq), (int(stamp), pose))
+
     for n, frame in enumerate(tqdm(frames, unit="frame")):
         work = to_grey(resize_to_working(frame.rgb, size))
+        tracked = _track(tracker, frontend, frame, work, first)
         if selector.observe(work).is_keyframe or n == len(frames) - 1:
             selector.set_reference(work)
             t0 = time.perf_counter()
-            frontend.add_keyframe(KeyframeInput(frame.index, frame.t_ns, work, k_work))
+            keep(frontend.add_keyframe(KeyframeInput(frame.index, frame.t_ns, work, k_work)))
             ba_seconds += time.perf_counter() - t0
             n_kf += 1
+            if tracker is not None and (ref := frontend.reference()) is not None:
+                tracker.set_reference(ref)
             if args.verbose:
                 _print_steps(frontend, frame.index, time.perf_counter() - t0)
         else:
             lite = cv2.resize(work, (work.shape[1] // 2, work.shape[0] // 2), interpolation=cv2.INTER_AREA)
-            frontend.add_frame(FrameInput(frame.index, frame.t_ns, lite))
+            keep(frontend.add_frame(FrameInput(frame.index, frame.t_ns, lite, tracked)))
     t0 = time.perf_counter()
-    poses = frontend.finish().poses
+    keep(frontend.finish())
     finish_seconds = time.perf_counter() - t0
-    est = Trajectory(poses.stamps_ns / 1e9, poses.poses)
+    seqs = sorted(latest)
+    est = Trajectory(np.array([latest[s][0] for s in seqs]) / 1e9, np.stack([latest[s][1] for s in seqs]))
+    poses = est.world_from_cam
     focal = frontend.intrinsics[0] / size.scale_x
-    print(f"frames {len(frames)}  posed {len(poses.frame_seqs)}  keyframes {n_kf} (graph {len(frontend.graph)})")
+    print(f"frames {len(frames)}  posed {len(seqs)}  keyframes {n_kf} (graph {len(frontend.graph)})")
     print(f"focal {focal:.1f} px (start {start.fx:.1f})")
     print(f"BA {ba_seconds:.1f} s ({ba_seconds / max(n_kf, 1):.2f} s/keyframe), finish {finish_seconds:.1f} s, "
           f"wall {time.perf_counter() - t_start:.1f} s")
     print("time in: " + ", ".join(f"{name} {sec:.1f} s ({calls} calls)" for name, (sec, calls) in spent.items()))
-    rel = np.linalg.inv(poses.poses[0]) @ poses.poses
+    rel = np.linalg.inv(poses[0]) @ poses
     angles = np.degrees(np.arccos(np.clip((np.trace(rel[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1)))
     print(f"drift from the first pose: max rotation {angles.max():.3f} deg, max translation "
           f"{np.linalg.norm(rel[:, :3, 3], axis=1).max():.4f} (map units)")
     ate = evaluate(args.source, est)
     if ate is not None:
         print(f"ATE sim3 rmse {ate.rmse:.3f} m  max {ate.max:.3f} m  pairs {ate.n_pairs}")
+    if tracker is not None:
+        seqs = sorted(first)
+        at_once = evaluate(args.source, Trajectory(np.array([first[s][0] for s in seqs]) / 1e9,
+                                                   np.stack([first[s][1] for s in seqs])))
+        if at_once is not None:
+            print(f"ATE of the first (tracked) poses: sim3 rmse {at_once.rmse:.3f} m  pairs {at_once.n_pairs}")
     if args.out:
         write_tum(args.out, est)
+
+
+def _track(tracker: Tracker | None, frontend: Frontend, frame: SourceFrame, work: np.ndarray,
+           first: dict[int, tuple[int, np.ndarray]]) -> tuple[int, torch.Tensor] | None:
+    """The tracking thread's work for one frame: its pose at once, and the anchor mapping will use."""
+    if tracker is None:
+        return None
+    lite = cv2.resize(work, (work.shape[1] // 2, work.shape[0] // 2), interpolation=cv2.INTER_AREA)
+    out = tracker.track(frame.index, frame.t_ns, lite)
+    if out is None:
+        return None
+    first.setdefault(frame.index, (frame.t_ns, out.pose.numpy()))
+    if not out.ok:
+        return None
+    return out.ref_seq, se3.inverse(tracker.reference.pose) @ out.pose
 
 
 def _instrument() -> dict[str, list]:
