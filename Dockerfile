@@ -5,8 +5,10 @@ WORKDIR /app
 COPY pyproject.toml README.md ./
 COPY scripts scripts
 COPY services services
-# CPU PyTorch (the install script never pulls CUDA wheels on a machine without nvidia-smi)
-RUN VENV=/opt/venv EXTRAS=models ./scripts/install.sh
+# CPU PyTorch (the install script never pulls CUDA wheels on a machine without nvidia-smi); a regular, not
+# editable, install: the image runs the package copied into /opt/venv. CI installs the same way
+# (.ci/run, tests/test_production_install.py).
+RUN VENV=/opt/venv EXTRAS=models EDITABLE=0 ./scripts/install.sh
 ENV PATH=/opt/venv/bin:$PATH \
     KMVIPE_MODELS_DIR=/models \
     HF_HOME=/models/huggingface

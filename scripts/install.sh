@@ -1,5 +1,10 @@
 #!/usr/bin/env bash
 # Creates .venv (if missing) and installs KM-ViPE into it.
+#   VENV=.venv            where (created if missing)
+#   EXTRAS=models,dev     optional dependency groups ("" for none)
+#   EDITABLE=1            1: editable install for development (edits to services/ take effect at once);
+#                         0: a regular install, as in production (the Dockerfile): the package is copied into
+#                         the venv, so it runs from any directory and never imports the checkout
 # PyTorch goes in first and pinned: an unpinned torch pulls several GB of CUDA packages,
 # so on a machine without an NVIDIA GPU we take the CPU build.
 set -euo pipefail
@@ -7,7 +12,12 @@ cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 VENV=${VENV:-.venv}
 TORCH_VERSION=${TORCH_VERSION:-2.13.0}
-EXTRAS=${EXTRAS:-models,dev}
+EXTRAS=${EXTRAS-models,dev}
+EDITABLE=${EDITABLE:-1}
+case "$EDITABLE" in
+  0|1) ;;
+  *) echo "EDITABLE must be 0 or 1 (got $EDITABLE)" >&2; exit 1 ;;
+esac
 
 if ! "$PY" -c 'import sys; sys.exit(sys.version_info < (3, 11))'; then
   echo "KM-ViPE needs Python >= 3.11 (found $("$PY" --version)); set PYTHON=/path/to/python3.11" >&2
@@ -15,8 +25,13 @@ if ! "$PY" -c 'import sys; sys.exit(sys.version_info < (3, 11))'; then
 fi
 [ -x "$VENV/bin/python" ] || "$PY" -m venv "$VENV"
 PIP="$VENV/bin/python -m pip"
+# The stamp records how the venv was installed; it is current when it says the same, is newer than
+# pyproject.toml and, for a regular (copied) install, newer than every file of the package.
 stamp="$VENV/.kmvipe-installed"
-if [ -f "$stamp" ] && [ "$stamp" -nt pyproject.toml ]; then exit 0; fi
+want="editable=$EDITABLE extras=$EXTRAS"
+if [ -f "$stamp" ] && [ "$stamp" -nt pyproject.toml ] && [ "$(cat "$stamp")" = "$want" ]; then
+  if [ "$EDITABLE" = 1 ] || [ -z "$(find services -newer "$stamp" -print -quit)" ]; then exit 0; fi
+fi
 
 if ! "$VENV/bin/python" -c "import torch" 2>/dev/null; then
   if command -v nvidia-smi >/dev/null 2>&1; then
@@ -32,5 +47,14 @@ if ! "$VENV/bin/python" -c "import torch" 2>/dev/null; then
     fi
   fi
 fi
-$PIP install -e ".[$EXTRAS]"
-touch "$stamp"
+spec="."
+[ -n "$EXTRAS" ] && spec=".[$EXTRAS]"
+if [ "$EDITABLE" = 1 ]; then
+  $PIP install -e "$spec"
+else
+  # setuptools builds in ./build; a stale build/lib would put modules deleted since into the wheel.
+  # pip always rebuilds and reinstalls a local directory, so the venv gets the checkout as it is now.
+  rm -rf build
+  $PIP install "$spec"
+fi
+echo "$want" > "$stamp"

@@ -5,10 +5,12 @@ import argparse
 import importlib
 import json
 import logging
+import signal
 import sys
 from pathlib import Path
 
 from .common.errors import KmVipeError
+from .common.keys import DEFAULT_STREAM
 from .common.logs import setup_logging
 from .runner import children
 
@@ -16,7 +18,7 @@ DEFAULT_DEMO_SOURCE = "synth:frames={frames},seed={seed}"
 
 
 def _add_stream_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--stream", default="cam0", help="stream name (the <s> in kmvipe/<s>/...)")
+    p.add_argument("--stream", default=DEFAULT_STREAM, help="stream name (the <s> in kmvipe/<s>/...)")
     p.add_argument("--pacing", choices=["lossless", "realtime"], default="lossless")
     p.add_argument("--encoding", choices=["jpeg", "raw"], default="jpeg")
     p.add_argument("--intrinsics", type=float, nargs=4, metavar=("FX", "FY", "CX", "CY"),
@@ -34,8 +36,11 @@ def _cmd_run(args: argparse.Namespace) -> int:
         intrinsics=tuple(args.intrinsics) if args.intrinsics else None, max_frames=args.max_frames, serve=args.serve,
         skip=tuple(args.skip), port=args.port,
     )
-    report = run_pipeline(cfg)
-    _print_summary(report)
+    report = run_pipeline(cfg, on_outputs=_print_summary)  # the summary is printed as soon as it is written
+    if report.stopped_by:  # SIGINT / SIGTERM / SIGHUP before the end of the stream: the shell's 128 + signal
+        print(f"kmvipe: stopped by {report.stopped_by} before the end of the stream; "
+              f"what was produced so far is in {cfg.out.resolve()}", file=sys.stderr)
+        return 128 + signal.Signals[report.stopped_by].value
     return 0 if report.end_reason == "end" else 1
 
 
@@ -54,6 +59,7 @@ def _print_summary(report) -> None:
         print(f"  ATE (Sim3) vs GT:  {report.ate_rmse_sim3:.4f} RMSE over {report.ate_pairs} poses")
     for path in report.outputs:
         print(f"  wrote {path}")
+    sys.stdout.flush()
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:

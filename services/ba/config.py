@@ -11,6 +11,7 @@ import torch
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from services.ba.core.params import BAParams, FlowParams, RobustParams
+from services.common.keys import DEFAULT_STREAM
 
 
 class BASettings(BaseSettings):
@@ -18,7 +19,7 @@ class BASettings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="KMVIPE_BA_", env_file=".env", extra="ignore")
 
-    stream: str = "default"
+    stream: str = DEFAULT_STREAM
     """Stream name ``<s>`` in ``kmvipe/<s>/...``."""
     device: str = "auto"
     """``auto`` (CUDA when available, else CPU), ``cpu`` or ``cuda[:n]``."""

@@ -21,6 +21,15 @@ class ModelError(KmVipeError):
     """A model is missing, corrupt, or does not fit the map it is asked to serve."""
 
 
+MODELS_EXTRA = "pip install 'kmvipe[models]' (from a checkout: EXTRAS=models ./scripts/install.sh)"
+"""How to install the optional ``models`` extra (pyproject.toml), whose packages are only imported lazily."""
+
+
+def missing_models_extra(package: str, needed_by: str) -> ModelError:
+    """The error of a lazy import from the ``models`` extra that is not installed (tests/test_dependencies.py)."""
+    return ModelError(f"{needed_by} needs the {package} package, which comes with the models extra: {MODELS_EXTRA}")
+
+
 class BusError(KmVipeError):
     """The Zenoh session cannot be opened (no router at the endpoint, an endpoint already in use, bad config)."""
 

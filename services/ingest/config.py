@@ -6,6 +6,8 @@ from typing import Literal
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from ..common.keys import DEFAULT_STREAM
+
 
 class IngestSettings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="KMVIPE_INGEST_", env_file=".env", extra="ignore")
@@ -13,7 +15,7 @@ class IngestSettings(BaseSettings):
     source: str = ""
     """Video file, image folder (plain, TUM ``rgb.txt``, KITTI ``image_0/``), camera index or ``/dev/videoN``,
     ``rtsp://`` / ``http(s)://`` URL, or ``synth:frames=200,seed=0`` for the synthetic world."""
-    stream: str = "cam0"
+    stream: str = DEFAULT_STREAM
     """Stream name: the ``<s>`` in every key, so one deployment can serve several cameras."""
     pacing: Literal["lossless", "realtime"] = "lossless"
     """lossless: wait for credit, every frame is delivered; realtime: keep the source's pace, drop when behind."""

@@ -5,6 +5,7 @@ import argparse
 from pathlib import Path
 
 from ..common.errors import KmVipeError
+from ..common.keys import DEFAULT_STREAM
 
 
 def register(subparsers) -> None:
@@ -13,7 +14,7 @@ def register(subparsers) -> None:
     export = sub.add_parser("export", help="export a map database to PLY + depth maps + COLMAP text")
     export.add_argument("--db", required=True, help="the mapstore's SQLite file (e.g. out/run/map.db)")
     export.add_argument("--out", required=True, help="output folder")
-    export.add_argument("--stream", default="cam0")
+    export.add_argument("--stream", default=DEFAULT_STREAM)
     export.set_defaults(func=run_export)
 
 

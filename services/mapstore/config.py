@@ -11,6 +11,8 @@ from typing import Literal
 
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from ..common.keys import DEFAULT_STREAM
+
 
 @dataclass(frozen=True)
 class PointParams:
@@ -142,7 +144,7 @@ class MapstoreSettings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="KMVIPE_MAPSTORE_", env_file=".env", extra="ignore")
 
-    stream: str = "cam0"
+    stream: str = DEFAULT_STREAM
     """Stream name: the ``<s>`` in every key."""
     db_path: str = "out/map/{stream}.db"
     """SQLite map database; ``{stream}`` is replaced by the stream name."""

@@ -7,13 +7,15 @@ import sys
 
 import httpx
 
+from ..common.keys import DEFAULT_STREAM
+
 DEFAULT_URL = "http://127.0.0.1:8000"
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("query", help="ask a running query gateway where things are")
     p.add_argument("texts", nargs="+", help="one or more texts, e.g. chair 'fire extinguisher'")
-    p.add_argument("--stream", default="cam0", help="stream name")
+    p.add_argument("--stream", default=DEFAULT_STREAM, help="stream name")
     p.add_argument("--url", default=os.environ.get("KMVIPE_QUERY_URL", DEFAULT_URL), help="gateway base URL")
     p.add_argument("--top-k", type=int, default=5, help="top points per text")
     p.add_argument("--regions", type=int, default=5, help="most regions per text")

@@ -1,5 +1,10 @@
-"""Service processes started by the runner: each is ``python -m services.<name>`` in client mode against the
-runner's private router, with its log in ``<out>/logs/<name>.log``."""
+"""Service processes started by the runner: each is ``services.<name>`` (through :mod:`services.runner.child`) in
+client mode against the runner's private router, with its log in ``<out>/logs/<name>.log``.
+
+Children run in the caller's working directory and import the very package the runner runs: ``python -P``
+keeps the working directory off ``sys.path`` (a ``services/`` folder there must not shadow the package), and
+where the package is not installed in a site directory (a checkout or an editable install) its parent goes on
+``PYTHONPATH``. The runner hands them absolute paths only (:func:`services.runner.pipeline.absolute_paths`)."""
 from __future__ import annotations
 
 import importlib.util
@@ -7,8 +12,10 @@ import json
 import logging
 import os
 import signal
+import site
 import subprocess
 import sys
+import sysconfig
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -59,8 +66,35 @@ class Child:
             return ""
 
 
+PACKAGE_PARENT = Path(__file__).resolve().parents[2]
+"""The folder that holds the ``services`` package the runner runs (site-packages, or a checkout)."""
+
+
+def _site_dirs() -> set[Path]:
+    dirs = [*site.getsitepackages(), site.getusersitepackages(), sysconfig.get_paths()["purelib"],
+            sysconfig.get_paths()["platlib"]]
+    return {Path(d).resolve() for d in dirs if d}
+
+
+def child_pythonpath(environ: dict[str, str]) -> str | None:
+    """``PYTHONPATH`` for a child, so that it imports the runner's own package from any working directory:
+    unchanged (None) for a regular install, else the package's parent in front of the inherited one."""
+    if PACKAGE_PARENT in _site_dirs():
+        return None
+    inherited = environ.get("PYTHONPATH", "")
+    return os.pathsep.join([str(PACKAGE_PARENT), *([inherited] if inherited else [])])
+
+
+def command(name: str) -> list[str]:
+    """The command line of service ``name`` as a child of this process."""
+    return [sys.executable, "-P", "-m", "services.runner.child", name, str(os.getpid())]
+
+
 def start(name: str, endpoint: str, log_dir: Path, env: dict[str, str]) -> Child:
-    """Start service ``name`` as a child process connected to ``endpoint``."""
+    """Start service ``name`` as a child process connected to ``endpoint``, in the caller's working directory.
+
+    ``log_dir`` and every path in ``env`` must be absolute (the child resolves relative ones against the same
+    working directory as the runner, but the runner does not rely on that)."""
     log_dir.mkdir(parents=True, exist_ok=True)
     log_path = log_dir / f"{name}.log"
     child_env = {
@@ -71,11 +105,12 @@ def start(name: str, endpoint: str, log_dir: Path, env: dict[str, str]) -> Child
         "PYTHONUNBUFFERED": "1",
         **env,
     }
+    pythonpath = child_pythonpath(child_env)
+    if pythonpath is not None:
+        child_env["PYTHONPATH"] = pythonpath
     with open(log_path, "wb") as out:
-        process = subprocess.Popen(
-            [sys.executable, "-m", f"services.{name}"], env=child_env, stdout=out, stderr=subprocess.STDOUT,
-            cwd=Path(__file__).resolve().parents[2],
-        )
+        process = subprocess.Popen(command(name), env=child_env, stdout=out, stderr=subprocess.STDOUT,
+                                   stdin=subprocess.DEVNULL)
     return Child(name, process, log_path)
 
 

@@ -1,14 +1,21 @@
 """``kmvipe run``: every built service as its own process on a private loopback router, the source streamed
-through, a progress bar, and outputs + a summary at end of stream."""
+through, a progress bar, and outputs + a summary at end of stream.
+
+Paths are made absolute before anything uses them, so a run started in any directory reads its source and writes
+under its ``--out`` only. SIGINT, SIGTERM and SIGHUP end a run cleanly: the services are stopped and what was
+produced so far is written (``RunReport.stopped_by`` names the signal)."""
 from __future__ import annotations
 
 import json
 import logging
+import os
+import signal
 import sys
 import threading
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 from tqdm import tqdm
@@ -29,7 +36,7 @@ log = logging.getLogger(__name__)
 class RunSettings:
     source: str
     out: Path
-    stream: str = "cam0"
+    stream: str = keys.DEFAULT_STREAM
     pacing: str = "lossless"
     encoding: str = "jpeg"
     intrinsics: tuple[float, float, float, float] | None = None
@@ -58,6 +65,7 @@ class RunReport:
     end_reason: str = ""
     ate_rmse_sim3: float | None = None  # against the source's ground truth, when it has one
     ate_pairs: int = 0
+    stopped_by: str | None = None  # the signal (SIGINT, SIGTERM, SIGHUP) that cut the stream short, if one did
     outputs: list[str] = field(default_factory=list)
 
 
@@ -70,6 +78,7 @@ class _Observer:
         self.frames = self.keyframes = 0
         self.last_frame_seq = -1
         self.poses: dict[int, tuple[int, object]] = {}
+        self.mapped: set[int] = set()  # frames whose pose mapping has revised (a later tracking pose never wins)
         self.eos: dict[str, Eos] = {}
         self.done = threading.Event()
         self.last_activity = time.monotonic()
@@ -85,14 +94,76 @@ class _Observer:
                 self.keyframes += 1
             elif isinstance(msg, Poses):
                 for seq, stamp, pose in zip(msg.frame_seqs, msg.stamps_ns, msg.poses):
+                    if msg.tracked and int(seq) in self.mapped:
+                        continue
                     self.poses[int(seq)] = (int(stamp), pose)
+                    if not msg.tracked:
+                        self.mapped.add(int(seq))
             elif isinstance(msg, Eos):
                 self.eos[msg.stage] = msg
                 if msg.stage == self.last_stage:
                     self.done.set()
 
 
-def run_pipeline(cfg: RunSettings) -> RunReport:
+def absolute_source(source: str) -> str:
+    """``source`` as an absolute path when it names an existing local file or folder (``~`` expanded); camera
+    indices, ``/dev/video*``, URLs, ``synth:`` specs and anything else unchanged (the same reading as
+    ingest's ``open_source``)."""
+    if source.startswith("synth:") or source.isdigit() or source.startswith("/dev/video") or "://" in source:
+        return source
+    path = Path(source).expanduser()
+    return os.path.abspath(path) if path.exists() else source
+
+
+def absolute_paths(cfg: RunSettings) -> RunSettings:
+    """The same settings with ``out`` and a local ``source`` absolute, against the current working directory:
+    the services are separate processes, so no relative path may travel to them."""
+    return replace(cfg, out=cfg.out.expanduser().resolve(), source=absolute_source(cfg.source))
+
+
+class StopSignals:
+    """While active (main thread only), SIGINT, SIGTERM and SIGHUP set :attr:`event` instead of killing or
+    raising: every wait of the runner polls it, so a signal ends the run through the same clean path as the end of
+    the stream, and a second signal cannot interrupt the services' shutdown or the writing of the outputs.
+    A signal the caller ignores stays ignored (``nohup kmvipe run ...`` survives the terminal's SIGHUP)."""
+
+    SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+        self.signum: int | None = None
+        self._previous: dict[int, object] = {}
+
+    @property
+    def name(self) -> str | None:
+        return signal.Signals(self.signum).name if self.signum is not None else None
+
+    def is_set(self) -> bool:
+        return self.event.is_set()
+
+    def _handler(self, signum: int, _frame) -> None:
+        if self.signum is None:
+            self.signum = signum
+        self.event.set()
+
+    def __enter__(self) -> "StopSignals":
+        if threading.current_thread() is threading.main_thread():
+            for sig in self.SIGNALS:
+                if signal.getsignal(sig) is not signal.SIG_IGN:
+                    self._previous[sig] = signal.signal(sig, self._handler)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for sig, previous in self._previous.items():
+            signal.signal(sig, previous)
+        self._previous.clear()
+
+
+def run_pipeline(cfg: RunSettings, on_outputs: Callable[[RunReport], None] | None = None) -> RunReport:
+    """Run the pipeline on ``cfg.source``; the outputs are written at end of stream (before ``--serve`` keeps the
+    gateway up), or, when a signal stops the run, after the services stopped. ``on_outputs(report)`` is called
+    once they are on disk."""
+    cfg = absolute_paths(cfg)
     keys.check_name(cfg.stream)
     unknown = set(cfg.skip) - set(kids.PIPELINE)
     if unknown:
@@ -106,29 +177,56 @@ def run_pipeline(cfg: RunSettings) -> RunReport:
     endpoint = kids.free_tcp_endpoint()
     observer = _Observer(last_stage=kids.last_connected_stage(built))
     started: list[kids.Child] = []
-    with Bus(BusSettings(mode="router", listen=[endpoint]), "runner") as bus:
+
+    def finish() -> None:
+        _fill_report(report, observer)
+        report.outputs = _write_outputs(cfg, report, observer)
+        if on_outputs is not None:
+            on_outputs(report)
+
+    with StopSignals() as stop, Bus(BusSettings(mode="router", listen=[endpoint]), "runner") as bus:
         for topic in (keys.FRAME, keys.KEYFRAME, keys.POSE, keys.EOS):
             bus.subscribe(keys.topic(cfg.stream, topic), observer.on_message)
         bus.ready()
         try:
-            for name in [n for n in built if n != "ingest"]:
-                started.append(kids.start(name, endpoint, cfg.out / "logs", _service_env(name, cfg)))
-            _wait_alive(bus, started, cfg.alive_timeout_s)
-            sink = None if "features" in built else _CreditSink(bus, cfg, observer)
-            begin = time.monotonic()
-            ingest = kids.start("ingest", endpoint, cfg.out / "logs", _service_env("ingest", cfg))
-            started.append(ingest)
-            report.end_reason = _follow(observer, started, ingest, cfg)
-            report.duration_s = time.monotonic() - begin
-            if sink:
-                sink.close()
-            if cfg.serve and "query_api" in built:
-                _serve_until_interrupted(started, cfg.port)
+            if not _stream(bus, cfg, built, endpoint, observer, started, stop, report):
+                report.stopped_by = stop.name
+                report.end_reason = f"stopped by {stop.name}"
+            else:  # the stream ended: outputs now, so they are on disk while the gateway serves
+                finish()
+                if cfg.serve and "query_api" in built:
+                    _serve_until_stopped(started, cfg.port, stop)
         finally:
             kids.stop(started)
-    _fill_report(report, observer)
-    report.outputs = _write_outputs(cfg, report, observer)
+        if report.stopped_by:  # what was produced before the signal, once the services have stopped
+            finish()
     return report
+
+
+def _stream(bus: Bus, cfg: RunSettings, built: list[str], endpoint: str, observer: _Observer,
+            started: list[kids.Child], stop: StopSignals, report: RunReport) -> bool:
+    """Start the services, then ingest, and follow the stream to its end (True; ``report.end_reason`` says how
+    it ended) or until a stop signal cuts it short (False)."""
+    for name in [n for n in built if n != "ingest"]:
+        if stop.is_set():
+            return False
+        started.append(kids.start(name, endpoint, cfg.out / "logs", _service_env(name, cfg)))
+    if not _wait_alive(bus, started, cfg.alive_timeout_s, stop):
+        return False
+    sink = None if "features" in built else _CreditSink(bus, cfg, observer)
+    begin = time.monotonic()
+    try:
+        ingest = kids.start("ingest", endpoint, cfg.out / "logs", _service_env("ingest", cfg))
+        started.append(ingest)
+        reason = _follow(observer, started, ingest, cfg, stop)
+        report.duration_s = time.monotonic() - begin
+    finally:
+        if sink:
+            sink.close()
+    if reason is None:
+        return False
+    report.end_reason = reason
+    return True
 
 
 def _service_env(name: str, cfg: RunSettings) -> dict[str, str]:
@@ -147,17 +245,20 @@ def _service_env(name: str, cfg: RunSettings) -> dict[str, str]:
     return env
 
 
-def _wait_alive(bus: Bus, started: list[kids.Child], timeout_s: float) -> None:
-    """Block until every started service has announced itself on the bus."""
+def _wait_alive(bus: Bus, started: list[kids.Child], timeout_s: float, stop: StopSignals) -> bool:
+    """Block until every started service has announced itself on the bus (True), or a stop signal (False)."""
     deadline = time.monotonic() + timeout_s
     waiting = {child.name for child in started}
     while waiting:
+        if stop.is_set():
+            return False
         waiting -= set(bus.alive(timeout=0.5))
         for child in started:
             if not child.running():
                 raise KmVipeError(f"service '{child.name}' exited during start-up; its log ends:\n{child.tail()}")
         if waiting and time.monotonic() > deadline:
             raise KmVipeError(f"services {sorted(waiting)} did not come up within {timeout_s:.0f} s (logs in {started[0].log_path.parent})")
+    return not stop.is_set()
 
 
 class _CreditSink:
@@ -183,14 +284,18 @@ class _CreditSink:
         self._thread.join()
 
 
-def _follow(observer: _Observer, started: list[kids.Child], ingest: kids.Child, cfg: RunSettings) -> str:
-    """Show progress until the last stage's end of stream, a dead service, or a stall."""
+def _follow(observer: _Observer, started: list[kids.Child], ingest: kids.Child, cfg: RunSettings,
+            stop: StopSignals) -> str | None:
+    """Show progress until the last stage's end of stream, a dead service or a stall (the reason), or a stop
+    signal (None)."""
     interactive = sys.stderr.isatty()
     bar = tqdm(desc=f"kmvipe {cfg.stream}", unit="frame", mininterval=0.5 if interactive else 10.0,
                dynamic_ncols=True)
     begin = time.monotonic()
     try:
         while not observer.done.wait(0.25):
+            if stop.is_set():
+                return None
             with observer.lock:
                 fps = observer.frames / max(time.monotonic() - begin, 1e-6)
                 bar.set_postfix(keyframes=observer.keyframes, fps=f"{fps:.1f}", refresh=False)
@@ -208,12 +313,10 @@ def _follow(observer: _Observer, started: list[kids.Child], ingest: kids.Child, 
         bar.close()
 
 
-def _serve_until_interrupted(started: list[kids.Child], port: int) -> None:
-    print(f"serving queries at http://127.0.0.1:{port}/ (viewer) and /docs (API); Ctrl-C to stop")
-    try:
-        while all(c.running() for c in started if c.name == "query_api"):
-            time.sleep(0.5)
-    except KeyboardInterrupt:
+def _serve_until_stopped(started: list[kids.Child], port: int, stop: StopSignals) -> None:
+    """Keep the gateway up until a stop signal (Ctrl-C, SIGTERM, SIGHUP) or until it exits."""
+    print(f"serving queries at http://127.0.0.1:{port}/ (viewer) and /docs (API); Ctrl-C to stop", flush=True)
+    while all(c.running() for c in started if c.name == "query_api") and not stop.event.wait(0.5):
         pass
 
 

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ModelError
+from ..errors import ModelError, missing_models_extra
 
 INPUT_NAME = "input_image"
 LAYERNORM_OUTPUT = "/backbone/layernorm/Add_1_output_0"
@@ -33,7 +33,7 @@ def load_onnx(path: Path, model_name: str):
     try:
         import onnx
     except ImportError as exc:
-        raise ModelError(f"model '{model_name}' needs the onnx package: pip install onnx") from exc
+        raise missing_models_extra("onnx", f"model '{model_name}'") from exc
     try:
         model = onnx.load(str(path))
     except Exception as exc:  # noqa: BLE001 - protobuf decode errors have no common base

@@ -9,7 +9,7 @@ import torch
 
 from ..device import resolve_device
 
-from ..errors import ModelError
+from ..errors import ModelError, missing_models_extra
 from . import imgfocus
 from .backbones import OnnxDinoBackbone, TorchDinoBackbone
 from .depth import MetricDepthModel
@@ -51,7 +51,7 @@ def _transformers(entry: ModelEntry):
     try:
         import transformers
     except ImportError as exc:
-        raise ModelError(f"model '{entry.name}' needs transformers: pip install transformers") from exc
+        raise missing_models_extra("transformers", f"model '{entry.name}'") from exc
     return transformers
 
 
@@ -84,7 +84,7 @@ def _imgfocus_onnx(proto, entry: ModelEntry, threads: int) -> OnnxDinoBackbone:
     try:
         import onnxruntime as ort
     except ImportError as exc:
-        raise ModelError(f"model '{entry.name}' needs onnxruntime: pip install onnxruntime") from exc
+        raise missing_models_extra("onnxruntime", f"model '{entry.name}'") from exc
     opts = ort.SessionOptions()
     if threads > 0:
         opts.intra_op_num_threads = threads

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
-from ..errors import ModelError
+from ..errors import ModelError, missing_models_extra
 from .registry import HubSource, ModelEntry, PypiSource
 
 log = logging.getLogger(__name__)
@@ -124,7 +124,7 @@ class ModelStore:
         try:
             from huggingface_hub import snapshot_download
         except ImportError as exc:
-            raise ModelError(f"cannot pull '{entry.name}': pip install huggingface_hub transformers") from exc
+            raise missing_models_extra("huggingface_hub", f"pulling '{entry.name}'") from exc
         local_dir = self.models_dir / entry.name if self.models_dir else None
         try:
             path = snapshot_download(

@@ -7,7 +7,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from ..errors import ModelError
+from ..errors import ModelError, missing_models_extra
 
 log = logging.getLogger(__name__)
 
@@ -75,7 +75,10 @@ def head_state_from_checkpoint(state: dict[str, torch.Tensor]) -> dict[str, torc
 
 def _read_state(path: Path) -> dict[str, torch.Tensor]:
     if path.suffix == ".safetensors":
-        from safetensors.torch import load_file
+        try:
+            from safetensors.torch import load_file
+        except ImportError as exc:
+            raise missing_models_extra("safetensors", f"reading {path.name}") from exc
 
         return load_file(str(path))
     return torch.load(str(path), map_location="cpu", weights_only=True)
