@@ -85,8 +85,15 @@ def main() -> None:
         tracked = _track(tracker, frontend, frame, work, first)
         if selector.observe(work).is_keyframe or n == len(frames) - 1:
             selector.set_reference(work)
+            guess = None
+            if tracked is not None:  # as the tracking thread does: move on to the keyframe, start mapping there
+                guess = torch.from_numpy(first[frame.index][1])
+                tracker.promote(frame.index, frame.t_ns, work, guess)
+                g = frontend.graph
+                if tracked[0] in g.seqs:
+                    guess = g.poses[g.index(tracked[0])] @ tracked[1]
             t0 = time.perf_counter()
-            keep(frontend.add_keyframe(KeyframeInput(frame.index, frame.t_ns, work, k_work)))
+            keep(frontend.add_keyframe(KeyframeInput(frame.index, frame.t_ns, work, k_work, pose_guess=guess)))
             ba_seconds += time.perf_counter() - t0
             n_kf += 1
             if tracker is not None and (ref := frontend.reference()) is not None:

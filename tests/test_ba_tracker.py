@@ -13,7 +13,7 @@ from services.ba.core import se3
 from services.ba.core.params import FlowParams
 from services.ba.frontend.graph import GRID, grid_intrinsics
 from services.ba.frontend.params import MotionParams
-from services.ba.frontend.tracker import Reference, Tracker
+from services.ba.frontend.tracker import Reference, Tracker, propagate_disparity
 
 synth = pytest.importorskip("services.synth")
 
@@ -64,3 +64,44 @@ def test_a_frame_without_texture_stays_at_the_constant_velocity_prediction():
     assert out is not None and not out.ok  # a blank frame carries no motion evidence: the tracker invents none
     trans, rot = _errors(out.pose, guess.numpy())
     assert trans < 1e-3 and rot < 0.05
+
+
+def test_depth_carried_to_a_new_keyframe_matches_its_own():
+    world = synth.SynthWorld(synth.SynthConfig(n_frames=60, width=512, height=384, person=False, moved_chair=False))
+    a, b = _reference(world, 0), _reference(world, 4)
+    carried, known = propagate_disparity(a.pose, b.pose, a.disparity, a.intrinsics)
+    rel = ((carried - b.disparity).abs() / b.disparity)[known > 0]
+    assert carried.shape == b.disparity.shape and float(known.mean()) > 0.6
+    assert float(rel.median()) < 0.03 and float((rel < 0.1).double().mean()) > 0.85
+
+
+def test_a_promoted_keyframe_keeps_tracking_on_the_exact_trajectory():
+    """Mapping never answers: tracking moves its reference to each keyframe it aligned itself."""
+    world = synth.SynthWorld(synth.SynthConfig(n_frames=60, width=512, height=384, person=False, moved_chair=False))
+    tracker = Tracker(MotionParams(), FlowParams())
+    tracker.set_reference(_reference(world, 0))
+    path = float(np.linalg.norm(world.poses[12, :3, 3] - world.poses[0, :3, 3]))
+    for i in range(1, 13):
+        f = world.render(i)
+        out = tracker.track(i, f.t_ns, _grey(f.rgb, half=True))
+        assert out is not None and out.ok
+        if i % 3 == 0:
+            tracker.promote(i, f.t_ns, _grey(f.rgb, half=False), out.pose)
+    assert tracker.reference.seq == 12
+    trans, rot = _errors(out.pose, world.poses[12])
+    assert trans < 0.05 * path and rot < 1.0, (trans, rot)
+    tracker.set_reference(_reference(world, 6))  # mapping two keyframes behind: the carried-over one stays
+    assert tracker.reference.seq == 12
+    tracker.set_reference(_reference(world, 9))  # mapping holds the keyframe before the newest: it wins
+    assert tracker.reference.seq == 9
+
+
+def test_a_keyframe_mapping_keeps_up_with_is_not_promoted():
+    world = synth.SynthWorld(synth.SynthConfig(n_frames=60, width=512, height=384, person=False, moved_chair=False))
+    tracker = Tracker(MotionParams(), FlowParams())
+    tracker.set_reference(_reference(world, 0))
+    tracker.promote(0, 0, _reference(world, 0).image, torch.from_numpy(world.poses[0]))
+    f = world.render(3)
+    out = tracker.track(3, f.t_ns, _grey(f.rgb, half=True))
+    tracker.promote(3, f.t_ns, _grey(f.rgb, half=False), out.pose)  # mapping holds keyframe 0, the one before
+    assert tracker.reference.seq == 0

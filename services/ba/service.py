@@ -69,7 +69,7 @@ class BaState:
     merged_in_a_row: int = 0
     dropped: int = 0  # frames the inboxes dropped by the real-time policy (set at end of stream)
     # frame seq -> (keyframe seq, keyframe_from_cam) from the tracking thread, which fills it
-    anchors: dict[int, tuple[int, torch.Tensor]] = field(default_factory=dict)
+    anchors: dict[int, tuple[int, torch.Tensor, torch.Tensor]] = field(default_factory=dict)
 
 
 def build_state(cfg: BaSettings) -> BaState:
@@ -94,15 +94,33 @@ def handle_keyframe(state: BaState, msg: Keyframe, cfg: BaSettings) -> Outputs:
         log.warning("codes of an unknown PCA basis left out of BA", extra={
             "stream": msg.stream, "seq": msg.seq, "pca_version": native.version, "current": state.pca_version})
     update = state.frontend.add_keyframe(KeyframeInput(msg.seq, msg.t_ns, msg.image, np.asarray(msg.intrinsics),
-                                                       codes, msg.disparity_prior, native))
+                                                       codes, msg.disparity_prior, native,
+                                                       _pose_guess(state, msg.seq)))
     state.keyframes += 1
     state.last_seq = max(state.last_seq, msg.seq)
     return _outputs(state, msg, update, final=False)
 
 
 def _tracked(state: BaState, seq: int) -> tuple[int, torch.Tensor] | None:
-    """Tracking's anchor of frame ``seq`` (None when tracking has not posed it), forgetting older ones mapping
-    never asked for (frames dropped on the way to mapping)."""
+    """Tracking's anchor of frame ``seq``: (keyframe seq, keyframe_from_cam); None when tracking has not posed it."""
+    anchor = _take_anchor(state, seq)
+    return None if anchor is None else anchor[:2]
+
+
+def _pose_guess(state: BaState, seq: int) -> torch.Tensor | None:
+    """A keyframe's world_from_cam as tracking found it, moved with its reference if mapping has refined that."""
+    anchor = _take_anchor(state, seq)
+    if anchor is None:
+        return None
+    ref_seq, ref_from_cam, world_from_cam = anchor
+    graph = state.frontend.graph
+    if graph is not None and ref_seq in graph.seqs:
+        return graph.poses[graph.index(ref_seq)] @ ref_from_cam.to(graph.device)
+    return world_from_cam
+
+
+def _take_anchor(state: BaState, seq: int) -> tuple[int, torch.Tensor, torch.Tensor] | None:
+    """Pop frame ``seq``'s anchor, forgetting older ones mapping never asked for (frames dropped on the way)."""
     anchor = state.anchors.pop(seq, None)
     if len(state.anchors) > 64:
         for old in [s for s in list(state.anchors) if s < seq]:

@@ -18,6 +18,7 @@ from services.common.bus import Bus, Inbox
 from services.common.lifecycle import nice_this_thread
 from services.common.schema import Eos, FrameLite, Keyframe, Poses
 from services.ba.core import se3
+from services.ba.core.flow import to_grey
 from services.ba.frontend.tracker import Reference, Tracker
 
 log = logging.getLogger(__name__)
@@ -28,15 +29,16 @@ class TrackingLoop:
     """Runs :class:`Tracker` on a thread over ``inbox`` (frame_lite and keyframe messages of one stream)."""
 
     def __init__(self, tracker: Tracker, bus: Bus, inbox: Inbox, stream: str,
-                 anchors: dict[int, tuple[int, torch.Tensor]], niceness: int = 0):
+                 anchors: dict[int, tuple[int, torch.Tensor, torch.Tensor]], niceness: int = 0):
         self.tracker, self.bus, self.inbox, self.stream, self.niceness = tracker, bus, inbox, stream, niceness
         self._lock = threading.Lock()
         self._pending_ref: Reference | None = None
         self._reset = False
         self.tracked = 0  # frames posed by tracking in this stream
         self.last_seq = -1  # highest seq handled (for progress reports)
-        # seq -> (reference keyframe seq, (4, 4) reference_from_cam): mapping anchors the frame there instead of
-        # aligning it again (dict operations are atomic; mapping pops what it uses, reset clears the rest)
+        # seq -> (reference keyframe seq, (4, 4) reference_from_cam, (4, 4) world_from_cam): mapping anchors the
+        # frame there instead of aligning it again, and starts a keyframe from it (dict operations are atomic;
+        # mapping pops what it uses, reset clears the rest)
         self.anchors = anchors
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="tracking", daemon=True)
@@ -85,7 +87,9 @@ class TrackingLoop:
             return
         self.tracked += 1
         if out.ok:
-            self.anchors[msg.seq] = (out.ref_seq, se3.inverse(self.tracker.reference.pose) @ out.pose)
+            self.anchors[msg.seq] = (out.ref_seq, se3.inverse(self.tracker.reference.pose) @ out.pose, out.pose)
+            if isinstance(msg, Keyframe):  # tracking moves on to it now, whether or not mapping keeps up
+                self.tracker.promote(msg.seq, msg.t_ns, to_grey(msg.image), out.pose)
         pose = out.pose.detach().cpu().numpy().astype(np.float64)[None]
         self.bus.publish(keys.topic(self.stream, keys.POSE), Poses(
             self.stream, msg.seq, time.time_ns(), frame_seqs=np.array([msg.seq], np.int64),

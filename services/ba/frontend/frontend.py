@@ -39,6 +39,7 @@ class KeyframeInput(NamedTuple):
     codes: np.ndarray | None = None  # (H/8, W/8, K) feature codes in the version all graph codes share
     disparity_prior: np.ndarray | None = None  # (H/8, W/8) 1/m, 0 = none
     native_codes: NativeCodes | None = None  # the codes as received, for KeyframeGraph.recode on a new basis
+    pose_guess: torch.Tensor | None = None  # (4, 4) world_from_cam from tracking: a better start than constant velocity
 
 
 class FrameInput(NamedTuple):
@@ -91,6 +92,8 @@ class Frontend:
         prior = None if kf.disparity_prior is None else torch.from_numpy(np.asarray(kf.disparity_prior, np.float64))
         codes = None if kf.codes is None else torch.from_numpy(np.asarray(kf.codes, np.float32))
         pose, disp = self._predict(prior)
+        if kf.pose_guess is not None and self.initialised and bool(torch.isfinite(kf.pose_guess).all()):
+            pose = kf.pose_guess.to(self.device, torch.float64)
         k = g.append(kf.seq, kf.t_ns, grey, codes, prior, pose, disp, kf.native_codes)
         try:
             return self._integrate(k)
