@@ -84,6 +84,8 @@ def handle_keyframe(state: BaState, msg: Keyframe, cfg: BaSettings) -> Outputs:
         log.info("keyframe merged as a frame (mapping behind)", extra={"stream": msg.stream, "seq": msg.seq})
         return handle_frame_lite(state, msg, cfg)
     state.merged_in_a_row = 0
+    guess = _pose_guess(state, msg.seq)  # a live keyframe starts where tracking put it (mapping may be far behind)
+    guess = guess if msg.realtime else None
     early = state.early_codes.pop(msg.seq, None)
     codes, version = (msg.codes, msg.pca_version) if early is None else (early.codes, early.pca_version)
     native = None if codes is None else NativeCodes(version, codes)
@@ -94,8 +96,7 @@ def handle_keyframe(state: BaState, msg: Keyframe, cfg: BaSettings) -> Outputs:
         log.warning("codes of an unknown PCA basis left out of BA", extra={
             "stream": msg.stream, "seq": msg.seq, "pca_version": native.version, "current": state.pca_version})
     update = state.frontend.add_keyframe(KeyframeInput(msg.seq, msg.t_ns, msg.image, np.asarray(msg.intrinsics),
-                                                       codes, msg.disparity_prior, native,
-                                                       _pose_guess(state, msg.seq)))
+                                                       codes, msg.disparity_prior, native, guess))
     state.keyframes += 1
     state.last_seq = max(state.last_seq, msg.seq)
     return _outputs(state, msg, update, final=False)
@@ -153,10 +154,14 @@ def _merge(state: BaState, msg: Keyframe, cfg: BaSettings) -> bool:
 
 
 def handle_frame_lite(state: BaState, msg: FrameLite | Keyframe, cfg: BaSettings) -> Outputs:
+    """A frame's mapped pose. Lossless: aligned to the keyframes around it once the next one exists (tracking's
+    pose stands until then). Real time: anchored where tracking posed it (mapping spends no flow on frames; one
+    tracking could not pose keeps its predicted pose), since mapping has no time to spare."""
     state.last_seq = max(state.last_seq, msg.seq)
-    tracked = _tracked(state, msg.seq)
-    if msg.realtime and tracked is None:
-        return []  # live, mapping spends no flow on frames: this one keeps the pose tracking gave it
+    anchor = _tracked(state, msg.seq)  # taken either way, so the table only holds frames still on their way
+    if msg.realtime and anchor is None:
+        return []
+    tracked = anchor if msg.realtime else None
     update = state.frontend.add_frame(FrameInput(msg.seq, msg.t_ns, msg.image, tracked))
     return _outputs(state, msg, update, final=False)
 

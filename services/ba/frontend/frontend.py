@@ -286,11 +286,24 @@ class Frontend:
     def _try_initialise(self, force: bool = False) -> Update:
         p = self.params
         if not init.start_map(self.graph, p.init, self._ba_params(list(range(len(self.graph)))), p.motion, force):
+            self._slide_init_window()
             return Update()
         self.initialised = True
         self.graph.predict_flow = p.predict_flow
         self.metric = p.ba.alpha_disp > 0 and any(pr is not None for pr in self.graph.priors)
         return self._update(list(range(len(self.graph))))
+
+    def _slide_init_window(self) -> None:
+        """A two-view start that fails although the first and newest keyframe have parallax will not succeed
+        with a still longer baseline (fast motion: the flow between them breaks). Past ``max_keyframes``, the
+        oldest keyframe is turned back into a frame, so the next attempt uses a closer pair."""
+        g, p = self.graph, self.params.init
+        if len(g) <= p.max_keyframes or init.parallax(g) < p.min_flow:
+            return
+        seq = g.seqs[0]
+        logger.info("two-view start failed with parallax; oldest keyframe turned into a frame", extra={"seq": seq})
+        self.frames.add(FrameRecord(seq, g.stamps[0], g.images[0]))
+        g.remove(0)
 
     def _force_initialise(self) -> bool:
         """Start the map with what there is at end of stream; True when there was no parallax at all."""

@@ -23,6 +23,7 @@ class InitParams:
     """Two-view start of the map once enough keyframes have parallax."""
 
     min_keyframes: int = 4  # keyframes collected before the first attempt
+    max_keyframes: int = 6  # after a failed attempt with parallax, keyframes beyond this many slide out (oldest)
     min_flow: float = 2.0  # mean grid flow (grid px) between the first and the newest keyframe
     min_inliers: int = 50  # essential-matrix inliers required
     ransac_px: float = 1.0  # RANSAC threshold of the essential matrix, working-resolution pixels
