@@ -57,9 +57,38 @@ def _print_summary(report) -> None:
     print(f"  frames with pose:  {report.posed_frames}")
     if report.ate_rmse_sim3 is not None:
         print(f"  ATE (Sim3) vs GT:  {report.ate_rmse_sim3:.4f} RMSE over {report.ate_pairs} poses")
+    _print_live(report)
     for path in report.outputs:
         print(f"  wrote {path}")
     sys.stdout.flush()
+
+
+def _print_live(report) -> None:
+    """What a live consumer saw: posed fraction and pose latency, the first poses' ATE, drops, and each
+    service's CPU and memory."""
+    if report.posed_fraction is not None:
+        line = (f"  posed (any pose):  {round(report.posed_fraction * report.frames_read)}/{report.frames_read} "
+                f"frames read ({100 * report.posed_fraction:.1f} %)")
+        if report.pose_latency_ms:
+            lat = report.pose_latency_ms
+            line += f"; frame → first pose p50 {lat['p50']:.0f} ms, p99 {lat['p99']:.0f} ms, max {lat['max']:.0f} ms"
+        print(line)
+    if report.ate_first_poses is not None:
+        print(f"  ATE first poses:   {report.ate_first_poses:.4f} RMSE over {report.ate_first_poses_pairs} poses "
+              "(each frame's first pose, as published live)")
+    if report.drops:
+        drops = ", ".join(f"{stage} {'?' if n is None else n}" for stage, n in report.drops.items())
+        skipped = f"; codes skipped {report.codes_skipped}" if report.codes_skipped is not None else ""
+        print(f"  dropped:           {drops}{skipped}")
+    if report.end_of_stream_s is not None:
+        print(f"  end of stream:     {report.end_of_stream_s:.1f} s from ingest's EOS to the last stage's")
+    if report.services:
+        wall = report.duration_s or 0.0
+        parts = []
+        for name, use in report.services.items():
+            share = f" ({100 * use['cpu_stream_s'] / wall:.0f} %)" if wall else ""
+            parts.append(f"{name} {use['cpu_stream_s']:.1f} s{share} {use['rss_peak_mb']:.0f} MB")
+        print(f"  CPU, peak RSS:     {'; '.join(parts)}; all services {report.rss_total_peak_mb:.0f} MB at peak")
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:

@@ -59,6 +59,16 @@ class Child:
     def running(self) -> bool:
         return self.process.poll() is None
 
+    def exited_unreaped(self) -> bool:
+        """Exited but not yet reaped (``running()`` would reap it): its CPU times can still be read. False where
+        the platform cannot tell without reaping."""
+        if self.process.returncode is not None or not hasattr(os, "waitid"):
+            return False
+        try:
+            return os.waitid(os.P_PID, self.process.pid, os.WEXITED | os.WNOHANG | os.WNOWAIT) is not None
+        except ChildProcessError:
+            return False
+
     def tail(self, lines: int = 15) -> str:
         try:
             return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-lines:])

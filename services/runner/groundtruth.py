@@ -28,14 +28,19 @@ def source_groundtruth(source: str) -> Trajectory | None:
     return None
 
 
-def evaluate(source: str, estimate: Trajectory) -> AteResult | None:
-    """Sim(3)-aligned ATE of ``estimate`` against the source's ground truth, or None without one."""
+def evaluate(source: str, estimate: Trajectory, *more: Trajectory) -> AteResult | None | list[AteResult | None]:
+    """Sim(3)-aligned ATE of ``estimate`` against the source's ground truth, or None without one. With ``more``
+    trajectories, a list with the ATE of each (the ground truth is read once)."""
+    estimates = [estimate, *more]
     try:
         reference = source_groundtruth(source)
     except SourceError:
-        return None
-    if reference is None:
-        return None
+        reference = None
+    results = [None if reference is None else _ate(reference, e) for e in estimates]
+    return results if more else results[0]
+
+
+def _ate(reference: Trajectory, estimate: Trajectory) -> AteResult | None:
     try:
         return absolute_trajectory_error(reference, estimate, align="sim3", max_diff=MAX_STAMP_DIFF_S)
     except ValueError as exc:

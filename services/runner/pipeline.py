@@ -28,6 +28,7 @@ from ..common.schema import Credit, Eos, Frame, Keyframe, Poses
 from ..evaluation.trajectory_io import Trajectory, write_tum
 from . import children as kids
 from .groundtruth import evaluate
+from .resources import ResourceMonitor
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +48,7 @@ class RunSettings:
     credit_window: int = 8  # frames the runner lets ingest run ahead when it is the only consumer
     alive_timeout_s: float = 120.0  # model loading can take a while on a cold CPU
     stall_timeout_s: float = 600.0  # no message at all for this long means something hung
+    rss_every_frames: int = 500  # RunReport.rss_mb_at_frames: every service's RSS each time this many frames passed
 
 
 @dataclass
@@ -63,8 +65,20 @@ class RunReport:
     duration_s: float = 0.0
     fps: float = 0.0
     end_reason: str = ""
-    ate_rmse_sim3: float | None = None  # against the source's ground truth, when it has one
+    ate_rmse_sim3: float | None = None  # against the source's ground truth, when it has one (final poses)
     ate_pairs: int = 0
+    # live operation: what a consumer of the pose stream saw while the stream ran
+    frames_read: int = 0  # frames ingest read from the source (its EOS seq + 1), sent or dropped
+    posed_fraction: float | None = None  # frames with any pose / frames read (frames ingest dropped: not posed)
+    pose_latency_ms: dict[str, float] | None = None  # frame seen on the bus → its first pose: p50, p99, max, n
+    ate_first_poses: float | None = None  # Sim(3) ATE of each frame's first pose (tracked or mapped)
+    ate_first_poses_pairs: int = 0
+    drops: dict[str, int | None] = field(default_factory=dict)  # per stage, from its EOS (None: no EOS came)
+    codes_skipped: int | None = None  # features, real time: keyframes the backbone skipped as stale
+    end_of_stream_s: float | None = None  # ingest's EOS → the last stage's EOS, as the runner saw them
+    services: dict[str, dict[str, float]] = field(default_factory=dict)  # cpu_s, cpu_stream_s, rss_peak_mb
+    rss_total_peak_mb: float = 0.0  # largest sum over the services of their RSS at one sample
+    rss_mb_at_frames: list[dict] = field(default_factory=list)  # {"frames", "t_s", "rss_mb": {service: MB}}
     stopped_by: str | None = None  # the signal (SIGINT, SIGTERM, SIGHUP) that cut the stream short, if one did
     outputs: list[str] = field(default_factory=list)
 
@@ -79,21 +93,28 @@ class _Observer:
         self.last_frame_seq = -1
         self.poses: dict[int, tuple[int, object]] = {}
         self.mapped: set[int] = set()  # frames whose pose mapping has revised (a later tracking pose never wins)
+        self.seen_at: dict[int, float] = {}  # frame seq → monotonic time the runner saw it on the bus
+        self.first_pose: dict[int, tuple[float, int, object]] = {}  # seq → (arrival, stamp, pose) of its first pose
         self.eos: dict[str, Eos] = {}
+        self.eos_at: dict[str, float] = {}
         self.done = threading.Event()
         self.last_activity = time.monotonic()
 
     def on_message(self, delivery: Delivery) -> None:
         msg = delivery.msg
+        now = time.monotonic()
         with self.lock:
-            self.last_activity = time.monotonic()
+            self.last_activity = now
             if isinstance(msg, Frame):
                 self.frames += 1
                 self.last_frame_seq = msg.seq
+                self.seen_at.setdefault(msg.seq, now)
             elif isinstance(msg, Keyframe):
                 self.keyframes += 1
             elif isinstance(msg, Poses):
                 for seq, stamp, pose in zip(msg.frame_seqs, msg.stamps_ns, msg.poses):
+                    if int(seq) not in self.first_pose:
+                        self.first_pose[int(seq)] = (now, int(stamp), pose)
                     if msg.tracked and int(seq) in self.mapped:
                         continue
                     self.poses[int(seq)] = (int(stamp), pose)
@@ -101,6 +122,7 @@ class _Observer:
                         self.mapped.add(int(seq))
             elif isinstance(msg, Eos):
                 self.eos[msg.stage] = msg
+                self.eos_at[msg.stage] = now
                 if msg.stage == self.last_stage:
                     self.done.set()
 
@@ -176,11 +198,14 @@ def run_pipeline(cfg: RunSettings, on_outputs: Callable[[RunReport], None] | Non
     cfg.out.mkdir(parents=True, exist_ok=True)
     endpoint = kids.free_tcp_endpoint()
     observer = _Observer(last_stage=kids.last_connected_stage(built))
+    monitor = ResourceMonitor()
     started: list[kids.Child] = []
 
     def finish() -> None:
-        _fill_report(report, observer)
-        report.outputs = _write_outputs(cfg, report, observer)
+        with observer.lock:  # late messages may still arrive (a --serve run, a signal)
+            _fill_report(report, observer, monitor)
+            poses, first_poses = dict(observer.poses), dict(observer.first_pose)
+        report.outputs = _write_outputs(cfg, report, poses, first_poses)
         if on_outputs is not None:
             on_outputs(report)
 
@@ -189,7 +214,7 @@ def run_pipeline(cfg: RunSettings, on_outputs: Callable[[RunReport], None] | Non
             bus.subscribe(keys.topic(cfg.stream, topic), observer.on_message)
         bus.ready()
         try:
-            if not _stream(bus, cfg, built, endpoint, observer, started, stop, report):
+            if not _stream(bus, cfg, built, endpoint, observer, monitor, started, stop, report):
                 report.stopped_by = stop.name
                 report.end_reason = f"stopped by {stop.name}"
             else:  # the stream ended: outputs now, so they are on disk while the gateway serves
@@ -204,21 +229,24 @@ def run_pipeline(cfg: RunSettings, on_outputs: Callable[[RunReport], None] | Non
 
 
 def _stream(bus: Bus, cfg: RunSettings, built: list[str], endpoint: str, observer: _Observer,
-            started: list[kids.Child], stop: StopSignals, report: RunReport) -> bool:
+            monitor: ResourceMonitor, started: list[kids.Child], stop: StopSignals, report: RunReport) -> bool:
     """Start the services, then ingest, and follow the stream to its end (True; ``report.end_reason`` says how
     it ended) or until a stop signal cuts it short (False)."""
     for name in [n for n in built if n != "ingest"]:
         if stop.is_set():
             return False
         started.append(kids.start(name, endpoint, cfg.out / "logs", _service_env(name, cfg)))
+        monitor.watch(name, started[-1].process.pid)
     if not _wait_alive(bus, started, cfg.alive_timeout_s, stop):
         return False
     sink = None if "features" in built else _CreditSink(bus, cfg, observer)
+    monitor.mark_stream_start()  # CPU spent loading models is not the stream's
     begin = time.monotonic()
     try:
         ingest = kids.start("ingest", endpoint, cfg.out / "logs", _service_env("ingest", cfg))
         started.append(ingest)
-        reason = _follow(observer, started, ingest, cfg, stop)
+        monitor.watch("ingest", ingest.process.pid)
+        reason = _follow(observer, monitor, started, ingest, cfg, stop)
         report.duration_s = time.monotonic() - begin
     finally:
         if sink:
@@ -284,23 +312,32 @@ class _CreditSink:
         self._thread.join()
 
 
-def _follow(observer: _Observer, started: list[kids.Child], ingest: kids.Child, cfg: RunSettings,
-            stop: StopSignals) -> str | None:
+def _follow(observer: _Observer, monitor: ResourceMonitor, started: list[kids.Child], ingest: kids.Child,
+            cfg: RunSettings, stop: StopSignals) -> str | None:
     """Show progress until the last stage's end of stream, a dead service or a stall (the reason), or a stop
-    signal (None)."""
+    signal (None). The services' CPU and memory are sampled on the way (every ``monitor.interval_s``, and once
+    more when a service exited, before it is reaped), and every service's RSS is recorded each time another
+    ``cfg.rss_every_frames`` frames passed."""
     interactive = sys.stderr.isatty()
     bar = tqdm(desc=f"kmvipe {cfg.stream}", unit="frame", mininterval=0.5 if interactive else 10.0,
                dynamic_ncols=True)
     begin = time.monotonic()
+    recorded = 0  # frames at the last RSS record
     try:
         while not observer.done.wait(0.25):
             if stop.is_set():
                 return None
             with observer.lock:
-                fps = observer.frames / max(time.monotonic() - begin, 1e-6)
+                frames = observer.frames
+                fps = frames / max(time.monotonic() - begin, 1e-6)
                 bar.set_postfix(keyframes=observer.keyframes, fps=f"{fps:.1f}", refresh=False)
-                bar.update(observer.frames - bar.n)
+                bar.update(frames - bar.n)
                 idle = time.monotonic() - observer.last_activity
+            if monitor.due() or any(c.exited_unreaped() for c in started):
+                monitor.sample()
+                if cfg.rss_every_frames and frames >= recorded + cfg.rss_every_frames:
+                    recorded = frames - frames % cfg.rss_every_frames
+                    monitor.record(frames)
             dead = [c for c in started if not c.running() and not (c is ingest and c.process.returncode == 0)]
             if dead:  # say why, and still write what was produced so far
                 log.error("service died", extra={"service": dead[0].name, "log_tail": dead[0].tail()})
@@ -309,6 +346,8 @@ def _follow(observer: _Observer, started: list[kids.Child], ingest: kids.Child, 
                 return f"stalled: nothing on the bus for {idle:.0f} s"
         return observer.eos[observer.last_stage].reason
     finally:
+        monitor.sample()  # CPU up to the end of the stream, before anything is stopped
+        monitor.record(observer.frames)
         bar.update(observer.frames - bar.n)
         bar.close()
 
@@ -320,7 +359,10 @@ def _serve_until_stopped(started: list[kids.Child], port: int, stop: StopSignals
         pass
 
 
-def _fill_report(report: RunReport, observer: _Observer) -> None:
+STAGES = ("ingest", "features", "ba", "mapstore")  # the streaming stages, each ends with an EOS
+
+
+def _fill_report(report: RunReport, observer: _Observer, monitor: ResourceMonitor) -> None:
     report.frames = observer.frames
     report.keyframes = observer.keyframes
     report.posed_frames = len(observer.poses)
@@ -328,21 +370,52 @@ def _fill_report(report: RunReport, observer: _Observer) -> None:
     if ingest_eos is not None:
         report.frames_dropped_or_lost = max(0, ingest_eos.seq + 1 - observer.frames)
     report.fps = report.frames / report.duration_s if report.duration_s else 0.0
+    # live operation: poses as they first arrived, against every frame ingest read
+    report.frames_read = ingest_eos.seq + 1 if ingest_eos is not None else max(observer.last_frame_seq + 1, 0)
+    posed = [seq for seq in observer.first_pose if 0 <= seq < report.frames_read]
+    report.posed_fraction = len(posed) / report.frames_read if report.frames_read else None
+    latencies = [max(0.0, observer.first_pose[seq][0] - observer.seen_at[seq]) * 1e3
+                 for seq in posed if seq in observer.seen_at]
+    if latencies:
+        report.pose_latency_ms = {
+            "p50": round(float(np.percentile(latencies, 50)), 1), "p99": round(float(np.percentile(latencies, 99)), 1),
+            "max": round(float(np.max(latencies)), 1), "n": len(latencies)}
+    ran = set(report.services_ran)
+    report.drops = {stage: (observer.eos[stage].dropped if stage in observer.eos else None)
+                    for stage in STAGES if stage in ran}
+    if "features" in observer.eos:
+        report.codes_skipped = observer.eos["features"].codes_skipped
+    if "ingest" in observer.eos_at and observer.last_stage in observer.eos_at:
+        report.end_of_stream_s = round(observer.eos_at[observer.last_stage] - observer.eos_at["ingest"], 3)
+    usage = monitor.report()
+    report.services = {name: usage[name] for name in kids.PIPELINE if name in usage}  # in chain order
+    report.rss_total_peak_mb = round(monitor.rss_total_peak_mb, 1)
+    report.rss_mb_at_frames = list(monitor.series)
 
 
-def _write_outputs(cfg: RunSettings, report: RunReport, observer: _Observer) -> list[str]:
+def _trajectory(poses: dict[int, tuple]) -> Trajectory:
+    """``seq → (..., stamp_ns, pose)`` as a trajectory in seq order."""
+    seqs = sorted(poses)
+    return Trajectory(np.array([poses[s][-2] for s in seqs], np.float64) / 1e9,
+                      np.stack([np.asarray(poses[s][-1], np.float64) for s in seqs]))
+
+
+def _write_outputs(cfg: RunSettings, report: RunReport, poses: dict[int, tuple[int, object]],
+                   first_poses: dict[int, tuple[float, int, object]]) -> list[str]:
+    """trajectory.txt (the latest pose of every frame), the ATE of those and of each frame's first pose (what a
+    live consumer saw at the time) when the source has ground truth, and summary.json."""
     written = []
-    if observer.poses:
-        seqs = sorted(observer.poses)
-        stamps = np.array([observer.poses[s][0] for s in seqs], np.float64) / 1e9
-        poses = np.stack([np.asarray(observer.poses[s][1], np.float64) for s in seqs])
+    if poses:
         path = cfg.out / "trajectory.txt"
-        estimate = Trajectory(stamps, poses)
+        estimate = _trajectory(poses)
         write_tum(path, estimate)
         written.append(str(path))
-        ate = evaluate(cfg.source, estimate)
+        live = _trajectory(first_poses)
+        ate, ate_live = evaluate(cfg.source, estimate, live)
         if ate is not None:
             report.ate_rmse_sim3, report.ate_pairs = ate.rmse, ate.n_pairs
+        if ate_live is not None:
+            report.ate_first_poses, report.ate_first_poses_pairs = ate_live.rmse, ate_live.n_pairs
     written += [str(cfg.out / name) for name in ("map.ply", "cameras.txt") if (cfg.out / name).is_file()]
     summary = cfg.out / "summary.json"
     summary.write_text(json.dumps(asdict(report) | {"outputs": written + [str(summary)]}, indent=2, default=str))

@@ -1,0 +1,260 @@
+"""Live operation (issue 12): `kmvipe run` as a user runs it, on a source streamed at its real rate, measured from
+the run's summary.json.
+
+For every source frame the runner records when it saw the frame on the bus and when the frame's first pose came
+(tracked or mapped); the summary has the posed fraction (frames with any pose / frames ingest read: frames ingest
+dropped count as not posed), the frame → first pose latency, the Sim(3) ATE of those first poses (what a live
+consumer saw) and of the final ones, drops per stage (from each stage's EOS), the keyframes whose codes the
+backbone skipped, and each service's CPU time while the stream ran and peak RSS (psutil, every 0.5 s). This
+script runs `kmvipe run` in a subprocess (so it measures the real processes, the bus and the model loading),
+relays its progress bar, and prints one markdown table per run with the command it ran and the load average.
+
+Modes (several may be given; each is one run):
+  --kitti          ../shared/data/kitti07_160 (KITTI 07, 160 frames at 10 Hz), realtime pacing
+  --synth N        the synthetic world (N frames at 30 Hz, 512x384) rendered once into an image folder under /tmp
+                   (the renderer is slower than 30 Hz) without depth.txt, so no sensor depth and no calibration
+                   reach the pipeline; streamed at 30 Hz realtime
+  --lossless       the same sources in lossless mode instead (end-to-end fps, every frame posed, ATE)
+  --frames N       memory check: a lossless run of synth:frames=N,width=256,height=192 that records every
+                   service's RSS each 500 frames (summary rss_mb_at_frames) and reports ba's and the mapstore's
+                   growth after the first 1,000 frames and the end-of-stream time (ingest's EOS → the last stage's)
+
+Usage:
+  python bench/live.py --kitti
+  python bench/live.py --synth 360
+  python bench/live.py --kitti --lossless
+  python bench/live.py --frames 10000                    # long: the memory check of issue 12
+  python bench/live.py --frames 1500 --timeout 60        # stop after a minute (SIGINT), report what was measured
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shlex
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+DATA_DIR = Path(os.environ.get("KMVIPE_DATA_DIR", REPO.parent / "shared" / "data"))
+KMVIPE = Path(sys.executable).parent / "kmvipe"
+STAGES = ("ingest", "features", "ba", "mapstore")
+SYNTH_FPS = 30.0
+
+
+@dataclass
+class Run:
+    label: str
+    source: str
+    pacing: str
+    env: dict[str, str] = field(default_factory=dict)
+    memory: bool = False  # report RSS growth and the end-of-stream time
+    note: str = ""
+
+
+def synth_folder(n_frames: int, cache: Path) -> Path:
+    """The synthetic world (n_frames at 30 Hz) as a TUM-style image folder with ground truth and no depth.txt,
+    rendered once into ``cache``."""
+    folder = cache / f"kmvipe-live-synth-{n_frames}-30hz"
+    done = folder / ".complete"
+    if not done.is_file():
+        from services.synth import SynthConfig, SynthWorld
+        from services.synth.io import write_image_folder
+
+        print(f"rendering {n_frames} synthetic frames into {folder} (once) ...", flush=True)
+        began = time.monotonic()
+        write_image_folder(SynthWorld(SynthConfig(n_frames=n_frames, fps=SYNTH_FPS)), folder)
+        (folder / "depth.txt").unlink()  # no sensor depth: a calibration-free, depth-free run
+        done.write_text("")
+        print(f"rendered in {time.monotonic() - began:.0f} s", flush=True)
+    assert not (folder / "depth.txt").exists()
+    return folder
+
+
+def run_kmvipe(run: Run, out_root: Path, timeout_s: float | None) -> tuple[dict, dict]:
+    """``kmvipe run`` on ``run``; its summary and what this script measured around it (command, load, wall)."""
+    out = out_root / run.label
+    cmd = [str(KMVIPE), "run", run.source, "--skip", "query_api", "--pacing", run.pacing, "--out", str(out)]
+    shown = " ".join([*(f"{k}={shlex.quote(v)}" for k, v in run.env.items()),
+                      "kmvipe", *map(shlex.quote, cmd[1:])])
+    print(f"\n[{run.label}] $ {shown}", flush=True)
+    (out / "summary.json").unlink(missing_ok=True)
+    out.mkdir(parents=True, exist_ok=True)
+    load_before = os.getloadavg()
+    loads: list[float] = []
+    began = time.monotonic()
+    with open(out / "kmvipe.stdout", "w") as stdout:
+        proc = subprocess.Popen(cmd, env={**os.environ, **run.env}, stdout=stdout, stderr=subprocess.PIPE,
+                                text=True, errors="replace", cwd=REPO)
+        relay = threading.Thread(target=_relay, args=(proc.stderr, run.label), daemon=True)
+        relay.start()
+        stopped = False
+        while proc.poll() is None:
+            time.sleep(1.0)
+            loads.append(os.getloadavg()[0])
+            if timeout_s and not stopped and time.monotonic() - began > timeout_s:
+                print(f"[{run.label}] --timeout {timeout_s:.0f} s: stopping the run (SIGINT)", flush=True)
+                proc.send_signal(signal.SIGINT)
+                stopped = True
+        relay.join(timeout=5)
+    wall = time.monotonic() - began
+    summary_path = out / "summary.json"
+    if not summary_path.is_file():
+        raise SystemExit(f"[{run.label}] kmvipe run exited {proc.returncode} without a summary; "
+                         f"see {out / 'kmvipe.stdout'} and {out / 'logs'}")
+    meta = {"command": shown, "returncode": proc.returncode, "wall_s": round(wall, 1),
+            "load_before": [round(x, 2) for x in load_before], "load_after": [round(x, 2) for x in os.getloadavg()],
+            "load_mean_1min": round(sum(loads) / len(loads), 2) if loads else None, "cpus": os.cpu_count(),
+            "note": run.note}
+    return json.loads(summary_path.read_text()), meta
+
+
+def _relay(stream, label: str, every_s: float = 10.0) -> None:
+    """The run's stderr (the progress bar, warnings) as progress lines, at most one bar update per ``every_s``
+    (and the bar's last state at the end)."""
+    last, pending = float("-inf"), None
+    for line in stream:  # text mode: tqdm's carriage returns end lines too
+        line = line.strip()
+        if not line:
+            continue
+        if line.startswith("kmvipe "):  # the bar
+            if time.monotonic() - last < every_s:
+                pending = line
+                continue
+            last, pending = time.monotonic(), None
+        print(f"[{label}] {line}", flush=True)
+    if pending:
+        print(f"[{label}] {pending}", flush=True)
+
+
+def _fmt(value, spec: str = "", none: str = "–") -> str:
+    return none if value is None else format(value, spec)
+
+
+def table(run: Run, summary: dict, meta: dict) -> str:
+    """One markdown table of a run."""
+    rows: list[tuple[str, str]] = []
+    read = summary.get("frames_read") or 0
+    posed = summary.get("posed_fraction")
+    lat = summary.get("pose_latency_ms") or {}
+    duration = summary.get("duration_s") or 0.0
+    rows.append(("source", f"`{summary['source']}`"))
+    rows.append(("pacing", run.pacing))
+    rows.append(("end", summary.get("end_reason", "")))
+    rows.append(("frames read / seen on the bus / keyframes", f"{read} / {summary['frames']} / {summary['keyframes']}"))
+    rows.append(("posed (any pose) / frames read",
+                 f"{round((posed or 0) * read)} / {read} ({100 * posed:.1f} %)" if posed is not None else "–"))
+    rows.append(("frame → first pose p50 / p99 / max",
+                 f"{lat['p50']:.0f} / {lat['p99']:.0f} / {lat['max']:.0f} ms" if lat else "–"))
+    rows.append(("ATE first poses (Sim3)", _ate(summary.get("ate_first_poses"), summary.get("ate_first_poses_pairs"))))
+    rows.append(("ATE final poses (Sim3)", _ate(summary.get("ate_rmse_sim3"), summary.get("ate_pairs"))))
+    rows.append(("end-to-end fps (frames read / ingest start → last EOS)",
+                 f"{read / duration:.2f} ({read} in {duration:.1f} s)" if duration else "–"))
+    rows.append(("end of stream (ingest EOS → last EOS)", _fmt(summary.get("end_of_stream_s"), ".1f") + " s"))
+    drops = summary.get("drops") or {}
+    rows.append(("dropped: " + " / ".join(STAGES), " / ".join(_fmt(drops.get(s)) for s in STAGES)))
+    rows.append(("codes skipped (backbone, stale keyframes)", _fmt(summary.get("codes_skipped"))))
+    for name, use in (summary.get("services") or {}).items():
+        share = f"{100 * use['cpu_stream_s'] / duration:.0f} %" if duration else "–"
+        rows.append((f"{name}: CPU share / CPU s / peak RSS",
+                     f"{share} / {use['cpu_stream_s']:.1f} s / {use['rss_peak_mb']:.0f} MB"))
+    rows.append(("all services: peak RSS (sum at one sample)", f"{summary.get('rss_total_peak_mb', 0):.0f} MB"))
+    if run.memory:
+        rows += memory_rows(summary)
+    rows.append(("load average before / mean during (1 min) / after",
+                 f"{meta['load_before'][0]:.2f} / {_fmt(meta['load_mean_1min'], '.2f')} / "
+                 f"{meta['load_after'][0]:.2f} on {meta['cpus']} CPUs"))
+    lines = [f"**{run.label}**: `{meta['command']}`" + (f" ({meta['note']})" if meta["note"] else ""), "",
+             "| metric | value |", "|---|---|", *(f"| {k} | {v} |" for k, v in rows)]
+    return "\n".join(lines)
+
+
+def _ate(rmse, pairs) -> str:
+    return f"{rmse:.4f} m over {pairs}" if rmse is not None else "–"
+
+
+def memory_rows(summary: dict) -> list[tuple[str, str]]:
+    """ba's and the mapstore's RSS after the first 1,000 frames against later samples (streaming and at the
+    end), and the RSS series itself."""
+    series = summary.get("rss_mb_at_frames") or []
+    rows = []
+    if not series:
+        return [("RSS series", "none recorded")]
+    streaming = series[:-1] or series  # the last record is taken at the end of the stream
+    base = next((s for s in streaming if s["frames"] >= 1000), None)
+    for name in ("ba", "mapstore"):
+        if base is None or name not in base["rss_mb"]:
+            rows.append((f"{name}: RSS growth after 1,000 frames", "– (fewer than 1,000 frames)"))
+            continue
+        b = base["rss_mb"][name]
+        last = streaming[-1]["rss_mb"].get(name, b)
+        peak = max(s["rss_mb"].get(name, 0.0) for s in series if s["frames"] >= base["frames"])
+        rows.append((f"{name}: RSS at {base['frames']} → {streaming[-1]['frames']} frames (peak after)",
+                     f"{b:.0f} → {last:.0f} MB ({100 * (last - b) / b:+.1f} %; peak {peak:.0f} MB, "
+                     f"{100 * (peak - b) / b:+.1f} %)"))
+    rows.append(("RSS every 500 frames (ba / mapstore MB)",
+                 ", ".join(f"{s['frames']}: {s['rss_mb'].get('ba', 0):.0f}/{s['rss_mb'].get('mapstore', 0):.0f}"
+                           for s in series)))
+    return rows
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    parser.add_argument("--kitti", action="store_true", help="KITTI 07 (160 frames, 10 Hz)")
+    parser.add_argument("--synth", type=int, metavar="N", help="the synthetic world, N frames at 30 Hz, no depth")
+    parser.add_argument("--lossless", action="store_true", help="run --kitti / --synth in lossless mode")
+    parser.add_argument("--frames", type=int, metavar="N", help="memory check: lossless synth:frames=N,256x192")
+    parser.add_argument("--oracle", action="store_true",
+                        help="synthetic sources: the synth-oracle backbone instead of DINO (no model, a test double)")
+    parser.add_argument("--timeout", type=float, metavar="S", help="stop each run after S seconds (SIGINT)")
+    parser.add_argument("--out", type=Path, default=Path("/tmp/kmvipe-live"), help="run outputs (one folder per run)")
+    parser.add_argument("--cache", type=Path, default=Path("/tmp"), help="where the rendered synthetic folder goes")
+    parser.add_argument("--json", type=Path, help="also write every run's summary and measurements here")
+    args = parser.parse_args()
+    if not (args.kitti or args.synth or args.frames):
+        parser.error("give at least one of --kitti, --synth N, --frames N")
+    if not KMVIPE.is_file():
+        raise SystemExit(f"the kmvipe command is not installed beside {sys.executable} (make install)")
+    pacing = "lossless" if args.lossless else "realtime"
+
+    runs: list[Run] = []
+    if args.kitti:
+        kitti = DATA_DIR / "kitti07_160"
+        if not kitti.is_dir():
+            raise SystemExit(f"KITTI 07 not found at {kitti} (set KMVIPE_DATA_DIR)")
+        runs.append(Run(f"kitti07-{pacing}", str(kitti), pacing))
+    if args.synth:
+        folder = synth_folder(args.synth, args.cache)
+        env = {"KMVIPE_INGEST_FPS": f"{SYNTH_FPS:g}"}  # the folder's stamps say 30 Hz too; this makes it explicit
+        if args.oracle:
+            env |= {"KMVIPE_FEATURES_BACKBONE": "synth-oracle", "KMVIPE_FEATURES_ORACLE_SOURCE": f"synth:frames={args.synth}"}
+        runs.append(Run(f"synth{args.synth}-30hz-{pacing}", str(folder), pacing, env,
+                        note="512x384, no depth, no intrinsics"))
+    if args.frames:
+        spec = f"synth:frames={args.frames},width=256,height=192"
+        env = {"KMVIPE_FEATURES_BACKBONE": "synth-oracle", "KMVIPE_FEATURES_ORACLE_SOURCE": spec} if args.oracle else {}
+        runs.append(Run(f"synth{args.frames}-memory-lossless", spec, "lossless", env, memory=True,
+                        note="memory check"))
+
+    results = []
+    tables = []
+    for run in runs:
+        summary, meta = run_kmvipe(run, args.out, args.timeout)
+        tables.append(table(run, summary, meta))
+        print("\n" + tables[-1] + "\n", flush=True)
+        results.append({"label": run.label, "summary": summary, "measured": meta})
+    if len(tables) > 1:
+        print("\n" + "\n\n".join(tables))
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,94 @@
+"""CPU time and memory of the runner's service processes, sampled while the stream runs (for the summary).
+
+Each service is one child process (the services start no processes of their own). The runner calls
+:meth:`ResourceMonitor.sample` from its follow loop about every half second, and always before it polls the
+children (``Popen.poll`` reaps an exited child, after which its CPU time is gone; before that a zombie still
+reports it). Peak RSS is the largest sample; CPU is user + system seconds at the last sample, and ``cpu_stream_s``
+the part of it spent after :meth:`mark_stream_start` (while the stream ran, model loading excluded)."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import psutil
+
+MB = 1024 * 1024
+
+
+@dataclass
+class ServiceUsage:
+    cpu_s: float = 0.0  # user + system seconds since the process started
+    cpu_at_stream_start: float | None = None
+    rss_mb: float = 0.0  # last sample
+    rss_peak_mb: float = 0.0
+
+    @property
+    def cpu_stream_s(self) -> float:
+        return self.cpu_s - (self.cpu_at_stream_start or 0.0)
+
+
+@dataclass
+class ResourceMonitor:
+    interval_s: float = 0.5
+    usage: dict[str, ServiceUsage] = field(default_factory=dict)
+    rss_total_peak_mb: float = 0.0
+    series: list[dict] = field(default_factory=list)  # {"frames", "t_s", "rss_mb": {service: MB}}
+    _procs: dict[str, psutil.Process] = field(default_factory=dict)
+    _last: float = float("-inf")
+    _t0: float = field(default_factory=time.monotonic)
+
+    def watch(self, name: str, pid: int) -> None:
+        try:
+            self._procs[name] = psutil.Process(pid)
+        except psutil.NoSuchProcess:
+            return
+        self.usage.setdefault(name, ServiceUsage())
+
+    def due(self) -> bool:
+        return time.monotonic() - self._last >= self.interval_s
+
+    def sample(self) -> None:
+        """One sample of every watched service (exited ones keep their last values)."""
+        self._last = time.monotonic()
+        total = 0.0
+        for name, proc in self._procs.items():
+            cpu, rss = _process_usage(proc)
+            use = self.usage[name]
+            if cpu is not None:
+                use.cpu_s = max(use.cpu_s, cpu)
+            if rss is not None and rss > 0:  # a zombie reports 0
+                use.rss_mb = rss / MB
+                use.rss_peak_mb = max(use.rss_peak_mb, use.rss_mb)
+                total += use.rss_mb
+        self.rss_total_peak_mb = max(self.rss_total_peak_mb, total)
+
+    def mark_stream_start(self) -> None:
+        self.sample()
+        for use in self.usage.values():
+            use.cpu_at_stream_start = use.cpu_s
+
+    def record(self, frames: int) -> None:
+        """Append the current RSS of every service to :attr:`series` (call right after :meth:`sample`)."""
+        self.series.append({"frames": int(frames), "t_s": round(time.monotonic() - self._t0, 2),
+                            "rss_mb": {n: round(u.rss_mb, 1) for n, u in self.usage.items()}})
+
+    def report(self) -> dict[str, dict[str, float]]:
+        return {n: {"cpu_s": round(u.cpu_s, 2), "cpu_stream_s": round(u.cpu_stream_s, 2),
+                    "rss_peak_mb": round(u.rss_peak_mb, 1)} for n, u in self.usage.items()}
+
+
+def _process_usage(proc: psutil.Process) -> tuple[float | None, float | None]:
+    """CPU seconds and RSS bytes of ``proc`` (the services start no processes of their own); None for what can
+    no longer be read (a zombie still has its CPU times, its RSS reads 0)."""
+    cpu = rss = None
+    with proc.oneshot():
+        try:
+            times = proc.cpu_times()
+            cpu = times.user + times.system
+        except (psutil.NoSuchProcess, psutil.AccessDenied):
+            pass
+        try:
+            rss = float(proc.memory_info().rss)
+        except (psutil.NoSuchProcess, psutil.AccessDenied):
+            pass
+    return cpu, rss

@@ -1,0 +1,116 @@
+"""The run summary of live operation (issue 12): for every frame ingest read, whether it got a pose and how long
+after the runner saw it the first one came; the ATE of those first poses next to the final ones; drops per stage
+from the EOS messages; each service's CPU time and peak RSS.
+
+The observer's bookkeeping is checked on messages fed to it directly; then two short real runs (`kmvipe run` in a
+subprocess, real time and lossless) on the synthetic world with the features service's synth-oracle backbone (no
+model to load), whose summary.json must carry the new fields with sane values. Nothing here asserts speed.
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from services.common.bus import Delivery
+from services.common.schema import Eos, Frame, Poses
+from services.runner.pipeline import RunReport, _fill_report, _Observer
+from services.runner.resources import ResourceMonitor
+
+SPEC = "synth:frames=30,width=256,height=192"
+STAGES = ("ingest", "features", "ba", "mapstore")
+KMVIPE = Path(sys.executable).parent / "kmvipe"
+
+
+def _deliver(observer: _Observer, msg) -> None:
+    observer.on_message(Delivery("kmvipe/cam0/x", msg))
+
+
+def _frame(seq: int) -> Frame:
+    return Frame("cam0", seq, seq * 100, 4, 4, jpeg=b"x")
+
+
+def _poses(seqs, tracked: bool, offset: float = 0.0, final: bool = False) -> Poses:
+    poses = np.repeat(np.eye(4)[None], len(seqs), axis=0)
+    poses[:, 0, 3] = np.asarray(seqs, float) + offset
+    return Poses("cam0", max(seqs), 0, np.asarray(seqs, np.int64), np.asarray(seqs, np.int64) * 100, poses,
+                 final=final, tracked=tracked)
+
+
+def test_the_first_pose_of_each_frame_is_kept_and_frames_ingest_dropped_count_as_not_posed():
+    observer = _Observer(last_stage="ba")
+    for seq in (0, 1, 3):  # ingest read 0..4, dropped 2 and 4
+        _deliver(observer, _frame(seq))
+    _deliver(observer, _poses([0], tracked=True))
+    _deliver(observer, _poses([1], tracked=True))
+    _deliver(observer, _poses([0, 1, 3], tracked=False, offset=0.5))  # mapping's revision, later
+    _deliver(observer, _poses([1], tracked=True, offset=9.0))  # a late tracking pose never wins over mapping
+    for stage, dropped in (("ingest", 2), ("features", 1), ("ba", 0)):
+        _deliver(observer, Eos("cam0", 4, 0, stage=stage, count=3, dropped=dropped,
+                               codes_skipped=4 if stage == "features" else 0))
+
+    report = RunReport("synth:", "cam0", ["ingest", "features", "ba"], [], duration_s=1.0)
+    _fill_report(report, observer, ResourceMonitor())
+    assert report.frames_read == 5 and report.posed_fraction == pytest.approx(3 / 5)
+    lat = report.pose_latency_ms
+    assert lat["n"] == 3 and 0 <= lat["p50"] <= lat["p99"] <= lat["max"]
+    assert report.drops == {"ingest": 2, "features": 1, "ba": 0}  # only the stages that ran
+    assert report.codes_skipped == 4
+    assert report.end_of_stream_s is not None and report.end_of_stream_s >= 0
+    # the first pose is the tracked one (x = seq), the latest the mapped one (x = seq + 0.5)
+    assert observer.first_pose[1][2][0, 3] == 1.0 and observer.first_pose[3][2][0, 3] == 3.5
+    assert observer.poses[1][1][0, 3] == 1.5
+
+
+def test_no_ingest_eos_counts_the_frames_seen_and_a_stage_without_eos_reports_none():
+    observer = _Observer(last_stage="ba")
+    for seq in range(4):
+        _deliver(observer, _frame(seq))
+    report = RunReport("synth:", "cam0", ["ingest", "features", "ba"], [])
+    _fill_report(report, observer, ResourceMonitor())
+    assert report.frames_read == 4 and report.posed_fraction == 0.0 and report.pose_latency_ms is None
+    assert report.drops == {"ingest": None, "features": None, "ba": None}
+
+
+def _run(tmp_path: Path, pacing: str) -> tuple[dict, str]:
+    assert KMVIPE.is_file(), f"the kmvipe command is not installed beside {sys.executable} (make install)"
+    env = {**os.environ, "KMVIPE_FEATURES_BACKBONE": "synth-oracle", "KMVIPE_FEATURES_ORACLE_SOURCE": SPEC}
+    out = tmp_path / pacing
+    result = subprocess.run([str(KMVIPE), "run", SPEC, "--skip", "query_api", "--pacing", pacing, "--out", str(out)],
+                            cwd=tmp_path, env=env, capture_output=True, text=True, timeout=400)
+    assert result.returncode == 0, result.stdout + result.stderr[-3000:]
+    return json.loads((out / "summary.json").read_text()), result.stdout
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+@pytest.mark.parametrize("pacing", ["realtime", "lossless"])
+def test_a_real_run_reports_posed_fraction_latency_drops_and_resources(tmp_path, pacing):
+    summary, stdout = _run(tmp_path, pacing)
+    assert summary["end_reason"] == "end"
+    assert summary["frames_read"] == 30
+    assert 0 < summary["posed_fraction"] <= 1
+    lat = summary["pose_latency_ms"]
+    assert 0 <= lat["p50"] <= lat["p99"] <= lat["max"] and 1 <= lat["n"] <= 30
+    assert set(summary["drops"]) == set(STAGES)
+    assert all(isinstance(n, int) and n >= 0 for n in summary["drops"].values())
+    assert isinstance(summary["codes_skipped"], int) and summary["codes_skipped"] >= 0
+    # the synthetic world has ground truth: both the final poses and the first ones are evaluated
+    assert summary["ate_rmse_sim3"] is not None and summary["ate_first_poses"] is not None
+    assert summary["ate_first_poses_pairs"] == round(summary["posed_fraction"] * 30)
+    assert summary["end_of_stream_s"] >= 0
+    assert list(summary["services"]) == list(STAGES)
+    for name, use in summary["services"].items():
+        assert use["cpu_s"] > 0 and 0 <= use["cpu_stream_s"] <= use["cpu_s"] and use["rss_peak_mb"] > 10, name
+    peaks = [use["rss_peak_mb"] for use in summary["services"].values()]
+    assert max(peaks) <= summary["rss_total_peak_mb"] <= sum(peaks) + 1
+    assert summary["rss_mb_at_frames"] and summary["rss_mb_at_frames"][-1]["frames"] == summary["frames"]
+    if pacing == "lossless":
+        assert summary["drops"] == {stage: 0 for stage in STAGES} and summary["posed_fraction"] == 1.0
+    for line in ("posed (any pose):", "ATE first poses:", "dropped:", "CPU, peak RSS:"):
+        assert line in stdout
