@@ -15,7 +15,8 @@ Modes (several may be given; each is one run):
                    (the renderer is slower than 30 Hz) without depth.txt, so no sensor depth and no calibration
                    reach the pipeline; streamed at 30 Hz realtime
   --lossless       the same sources in lossless mode instead (end-to-end fps, every frame posed, ATE)
-  --frames N       memory check: a lossless run of synth:frames=N,width=256,height=192 that records every
+  --frames N       memory check: a lossless run of synth:frames=N,width=256,height=192,span=N*100/120 (the
+                   demo's motion per frame, circling the room) that records every
                    service's RSS each 500 frames (summary rss_mb_at_frames) and reports ba's and the mapstore's
                    growth after the first 1,000 frames and the end-of-stream time (ingest's EOS → the last stage's)
 
@@ -237,7 +238,8 @@ def main() -> int:
         runs.append(Run(f"synth{args.synth}-30hz-{pacing}", str(folder), pacing, env,
                         note="512x384, no depth, no intrinsics"))
     if args.frames:
-        spec = f"synth:frames={args.frames},width=256,height=192"
+        # the demo's per-frame motion (100 degrees of orbit per 120 frames), circling the room for as long as it runs
+        spec = f"synth:frames={args.frames},width=256,height=192,span={round(args.frames * 100 / 120)}"
         env = {"KMVIPE_FEATURES_BACKBONE": "synth-oracle", "KMVIPE_FEATURES_ORACLE_SOURCE": spec} if args.oracle else {}
         runs.append(Run(f"synth{args.frames}-memory-lossless", spec, "lossless", env, memory=True,
                         note="memory check"))

@@ -156,13 +156,18 @@ def _merge(state: BaState, msg: Keyframe, cfg: BaSettings) -> bool:
 def handle_frame_lite(state: BaState, msg: FrameLite | Keyframe, cfg: BaSettings) -> Outputs:
     """A frame's mapped pose. Lossless: aligned to the keyframes around it once the next one exists (tracking's
     pose stands until then). Real time: anchored where tracking posed it (mapping spends no flow on frames; one
-    tracking could not pose keeps its predicted pose), since mapping has no time to spare."""
+    tracking could not pose keeps its predicted pose; one from before the map started is interpolated between
+    its keyframes), since mapping has no time to spare."""
     state.last_seq = max(state.last_seq, msg.seq)
     anchor = _tracked(state, msg.seq)  # taken either way, so the table only holds frames still on their way
-    if msg.realtime and anchor is None:
+    before_map = not state.frontend.initialised
+    if msg.realtime and anchor is None and not before_map:
         return []
     tracked = anchor if msg.realtime else None
-    update = state.frontend.add_frame(FrameInput(msg.seq, msg.t_ns, msg.image, tracked))
+    # live frames from before the map started are posed between the first keyframes by time alone: aligning
+    # each of them by flow at the start would put mapping seconds behind the camera
+    cheap = msg.realtime and before_map
+    update = state.frontend.add_frame(FrameInput(msg.seq, msg.t_ns, msg.image, tracked, cheap))
     return _outputs(state, msg, update, final=False)
 
 

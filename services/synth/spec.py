@@ -2,7 +2,9 @@
 stream was rendered from (the features oracle, map-quality evaluation) rebuilds exactly the same one.
 
 Options (all integers): frames, seed, width, height, person (0/1), chair (0/1: the moved chair), static (0/1:
-static camera instead of the orbit), depth (0/1: ingest also sends exact depth; no effect on the world).
+static camera instead of the orbit), span (degrees the orbit sweeps over the whole stream, default 100: a long
+stream with ordinary per-frame motion circles the room many times, e.g. frames=10000,span=8000), depth (0/1:
+ingest also sends exact depth; no effect on the world).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ OPTIONS = {
     "person": ("person", bool),
     "chair": ("moved_chair", bool),
     "static": ("camera", lambda v: "static" if v else "orbit"),
+    "span": ("orbit_span_deg", float),
 }
 _IGNORED = ("depth",)  # source options that do not change the world
 

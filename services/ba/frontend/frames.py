@@ -31,6 +31,7 @@ class FrameRecord:
     anchor: int | None = None  # seq of the keyframe its relative pose refers to
     anchor_from_cam: torch.Tensor | None = None  # (4, 4) float64
     targets: dict[int, Targets] = field(default_factory=dict)  # keyframe seq -> targets into this frame
+    interpolate_only: bool = False  # posed between its keyframes by time alone, no flow (live, mapping behind)
 
 
 def interpolate(pose_a: torch.Tensor, pose_b: torch.Tensor, frac: float) -> torch.Tensor:
@@ -88,6 +89,8 @@ class FramePoses:
             init = interpolate(graph.poses[a], graph.poses[b], (frame.stamp - graph.stamps[a]) / span)
         else:
             init = graph.poses[kfs[0]]
+        if frame.interpolate_only:
+            return self._anchor(graph, frame, kfs[0], init)
         tg = [self._targets(graph, k, frame) for k in kfs]
         dev = graph.device
         res = motion.align(init, torch.stack([graph.poses[k] for k in kfs]),
@@ -97,7 +100,10 @@ class FramePoses:
         pose = res.pose if res.ok else init
         if not res.ok:
             logger.info("frame kept its interpolated pose (weak flow)", extra={"seq": seq})
-        anchor = kfs[0]
+        return self._anchor(graph, frame, kfs[0], pose)
+
+    @staticmethod
+    def _anchor(graph: KeyframeGraph, frame: FrameRecord, anchor: int, pose: torch.Tensor) -> torch.Tensor:
         frame.anchor = graph.seqs[anchor]
         frame.anchor_from_cam = se3.inverse(graph.poses[anchor]) @ pose
         return pose

@@ -47,6 +47,7 @@ class FrameInput(NamedTuple):
     t_ns: int
     image: np.ndarray  # (h', w') uint8 grey (or RGB), same aspect ratio as the working image
     tracked: tuple[int, torch.Tensor] | None = None  # (keyframe seq, (4, 4) keyframe_from_cam) from tracking
+    interpolate_only: bool = False  # pose it between its keyframes by time, spend no flow on it
 
 
 class GraphUpdate(NamedTuple):
@@ -138,7 +139,7 @@ class Frontend:
         image = core_flow.to_grey(np.asarray(frame.image))
         if self.graph is not None and frame.seq in self.graph.seqs:
             raise ValueError(f"frame {frame.seq} is already a keyframe")
-        record = FrameRecord(frame.seq, frame.t_ns, image)
+        record = FrameRecord(frame.seq, frame.t_ns, image, interpolate_only=frame.interpolate_only)
         if frame.tracked is not None and self.graph is not None and frame.tracked[0] in self.graph.seqs:
             # tracking already aligned it to a keyframe: anchored there, it moves with every BA of that keyframe
             # and needs no flow of its own (its pose went out when it was tracked)
