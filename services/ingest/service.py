@@ -66,7 +66,7 @@ def run(cfg: IngestSettings, bus: Bus, stop: threading.Event, source: Source | N
     gate = CreditGate(cfg.credit_ttl_s)
     bus.subscribe(keys.topic(cfg.stream, keys.CREDIT), gate.on_credit, expect=[Credit])
     bus.ready()
-    if not gate.wait_for(0, cfg.wait_for_consumer_s):
+    if not _await_first_consumer(gate, cfg.wait_for_consumer_s, stop):
         # lossless gives up with a clear error below; realtime plays on and drops what nobody takes
         log.warning("no consumer has granted credit yet", extra={"stream": cfg.stream, "waited_s": cfg.wait_for_consumer_s})
     frame_key = keys.topic(cfg.stream, keys.FRAME)
@@ -113,6 +113,17 @@ def run(cfg: IngestSettings, bus: Bus, stop: threading.Event, source: Source | N
                                                          dropped=counters.dropped))
     log.info("end of stream", extra={"stream": cfg.stream, "reason": reason, **counters.__dict__})
     return counters
+
+
+def _await_first_consumer(gate: CreditGate, timeout_s: float, stop: threading.Event) -> bool:
+    """Wait up to ``timeout_s`` for any credit, returning early on ``stop`` (docker stop must not wait a minute)."""
+    deadline = time.monotonic() + timeout_s
+    while not stop.is_set():
+        if gate.wait_for(0, min(CREDIT_POLL_S, max(0.0, deadline - time.monotonic()))):
+            return True
+        if time.monotonic() >= deadline:
+            return False
+    return False
 
 
 def _await_credit(gate: CreditGate, seq: int, lossless: bool, cfg: IngestSettings, stop: threading.Event) -> bool:
