@@ -72,7 +72,7 @@ def main() -> None:
     latest: dict[int, tuple[int, np.ndarray]] = {}  # seq -> (t_ns, pose): the last pose published, as the runner keeps
     first: dict[int, tuple[int, np.ndarray]] = {}  # seq -> the first pose (tracking's with --track)
     settings = BaSettings()
-    tracker = Tracker(settings.frontend_params().motion, settings.flow_params()) if args.track else None
+    tracker = Tracker(settings.frontend_params().motion, settings.tracking_flow_params()) if args.track else None
 
     def keep(update) -> None:
         if update.poses is not None:

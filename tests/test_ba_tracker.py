@@ -13,9 +13,11 @@ from services.ba.core import se3
 from services.ba.core.params import FlowParams
 from services.ba.frontend.graph import GRID, grid_intrinsics
 from services.ba.frontend.params import MotionParams
+from services.ba.settings import BaSettings
 from services.ba.frontend.tracker import Reference, Tracker, propagate_disparity
 
 synth = pytest.importorskip("services.synth")
+TRACKING_FLOW = BaSettings().tracking_flow_params()  # as the ba service tracks
 
 
 def _grey(rgb: np.ndarray, half: bool) -> np.ndarray:
@@ -38,7 +40,7 @@ def _errors(pose: torch.Tensor, truth: np.ndarray) -> tuple[float, float]:
 
 def test_frames_after_a_reference_are_tracked_to_the_exact_trajectory():
     world = synth.SynthWorld(synth.SynthConfig(n_frames=60, width=512, height=384))
-    tracker = Tracker(MotionParams(), FlowParams())
+    tracker = Tracker(MotionParams(), TRACKING_FLOW)
     assert tracker.track(1, 0, _grey(world.render(1).rgb, half=True)) is None  # no map yet: no pose
     tracker.set_reference(_reference(world, 0))
     step = float(np.linalg.norm(world.poses[5, :3, 3] - world.poses[0, :3, 3]))
@@ -53,7 +55,7 @@ def test_frames_after_a_reference_are_tracked_to_the_exact_trajectory():
 
 def test_a_frame_without_texture_stays_at_the_constant_velocity_prediction():
     world = synth.SynthWorld(synth.SynthConfig(n_frames=60, width=512, height=384))
-    tracker = Tracker(MotionParams(), FlowParams())
+    tracker = Tracker(MotionParams(), TRACKING_FLOW)
     tracker.set_reference(_reference(world, 0))
     for i in (1, 2):
         f = world.render(i)
@@ -78,7 +80,7 @@ def test_depth_carried_to_a_new_keyframe_matches_its_own():
 def test_a_promoted_keyframe_keeps_tracking_on_the_exact_trajectory():
     """Mapping never answers: tracking moves its reference to each keyframe it aligned itself."""
     world = synth.SynthWorld(synth.SynthConfig(n_frames=60, width=512, height=384, person=False, moved_chair=False))
-    tracker = Tracker(MotionParams(), FlowParams())
+    tracker = Tracker(MotionParams(), TRACKING_FLOW)
     tracker.set_reference(_reference(world, 0))
     path = float(np.linalg.norm(world.poses[12, :3, 3] - world.poses[0, :3, 3]))
     for i in range(1, 13):
@@ -98,7 +100,7 @@ def test_a_promoted_keyframe_keeps_tracking_on_the_exact_trajectory():
 
 def test_a_keyframe_mapping_keeps_up_with_is_not_promoted():
     world = synth.SynthWorld(synth.SynthConfig(n_frames=60, width=512, height=384, person=False, moved_chair=False))
-    tracker = Tracker(MotionParams(), FlowParams())
+    tracker = Tracker(MotionParams(), TRACKING_FLOW)
     tracker.set_reference(_reference(world, 0))
     tracker.promote(0, 0, _reference(world, 0).image, torch.from_numpy(world.poses[0]))
     f = world.render(3)

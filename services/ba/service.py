@@ -155,18 +155,15 @@ def _merge(state: BaState, msg: Keyframe, cfg: BaSettings) -> bool:
 
 def handle_frame_lite(state: BaState, msg: FrameLite | Keyframe, cfg: BaSettings) -> Outputs:
     """A frame's mapped pose. Lossless: aligned to the keyframes around it once the next one exists (tracking's
-    pose stands until then). Real time: anchored where tracking posed it (mapping spends no flow on frames; one
-    tracking could not pose keeps its predicted pose; one from before the map started is interpolated between
-    its keyframes), since mapping has no time to spare."""
+    pose stands until then). Real time: anchored where tracking posed it, or interpolated between its keyframes
+    when tracking did not; mapping spends no flow on frames, it has no time to spare."""
     state.last_seq = max(state.last_seq, msg.seq)
     anchor = _tracked(state, msg.seq)  # taken either way, so the table only holds frames still on their way
-    before_map = not state.frontend.initialised
-    if msg.realtime and anchor is None and not before_map:
-        return []
     tracked = anchor if msg.realtime else None
-    # live frames from before the map started are posed between the first keyframes by time alone: aligning
-    # each of them by flow at the start would put mapping seconds behind the camera
-    cheap = msg.realtime and before_map
+    # a live frame tracking did not pose (before the map started, too little flow, or dropped to keep tracking's
+    # latency bounded) is posed between its keyframes by time alone: aligning it by flow would put mapping
+    # behind the camera
+    cheap = msg.realtime and anchor is None
     update = state.frontend.add_frame(FrameInput(msg.seq, msg.t_ns, msg.image, tracked, cheap))
     return _outputs(state, msg, update, final=False)
 
@@ -266,7 +263,7 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
     topic = lambda name: keys.topic(cfg.stream, name)  # noqa: E731
     mapping = bus.inbox({topic(keys.PCA): [PcaBasis], topic(keys.CODES): [KeyframeCodes], topic(keys.EOS): [Eos]},
                         maxsize=cfg.inbox_size, droppable=(FrameLite,))
-    track_box = Inbox(cfg.inbox_size, droppable=(FrameLite,))
+    track_box = Inbox(cfg.tracking_backlog, droppable=(FrameLite,))  # real time: stale frames make way
 
     def to_both(delivery: Delivery) -> None:  # frames and keyframes feed tracking and mapping alike
         for box in (track_box, mapping):
@@ -275,7 +272,7 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
 
     for name, kind in ((keys.KEYFRAME, Keyframe), (keys.FRAME_LITE, FrameLite)):
         bus.subscribe(topic(name), to_both, [kind])
-    tracking = TrackingLoop(Tracker(cfg.frontend_params().motion, cfg.flow_params()), bus, track_box, cfg.stream,
+    tracking = TrackingLoop(Tracker(cfg.frontend_params().motion, cfg.tracking_flow_params()), bus, track_box, cfg.stream,
                             state.anchors, cfg.tracking_nice)
     tracking.start()
     bus.ready()
