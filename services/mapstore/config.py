@@ -187,6 +187,13 @@ class MapstoreSettings(BaseSettings):
     """The stage whose end of stream ends the map: it is exported and the EOS forwarded as ``mapstore``."""
     eos_wait_s: float = 10.0
     """How long ba's EOS waits for ba's final graph (they travel on different keys) before the map is exported."""
+    fold_keyframes: bool = True
+    """Flat memory: keyframes that have left ba's graph, have their codes (or come from a real-time stream) and
+    are older than the carving window are folded into frozen voxel sums and leave memory (they stay in SQLite).
+    False keeps every keyframe in memory (and carving of old points by later views)."""
+    max_live_keyframes: int = 256
+    """Safety bound on the keyframes held in memory: beyond it, the oldest keyframes that have left ba's graph
+    are folded even while their codes are still to come (those codes are committed but stay out of the map)."""
 
     def map_params(self) -> MapParams:
         return MapParams(points=PointParams(min_weight=self.min_weight),

@@ -148,27 +148,46 @@ class ColmapImage(NamedTuple):
     size: tuple[int, int]  # (width, height) in pixels
 
 
-def write_colmap(folder: Path, images: dict[int, ColmapImage]) -> Path:
-    """cameras.txt (one PINHOLE camera per keyframe), images.txt (cam_from_world), empty points3D.txt."""
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    cams = ["# Camera list with one line of data per camera:", "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]"]
-    imgs = ["# Image list with two lines of data per image:",
-            "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME", "#   POINTS2D[] as (X, Y, POINT3D_ID)"]
-    for image_id, kf_id in enumerate(sorted(images), start=1):
-        im = images[kf_id]
+class ColmapWriter:
+    """cameras.txt (one PINHOLE camera per keyframe), images.txt (cam_from_world), empty points3D.txt, written
+    as cameras are added (in keyframe order), so an export of any length holds one camera at a time."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self._cams = open(self.folder / "cameras.txt", "w")
+        self._imgs = open(self.folder / "images.txt", "w")
+        self._cams.write("# Camera list with one line of data per camera:\n"
+                         "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n")
+        self._imgs.write("# Image list with two lines of data per image:\n"
+                         "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n"
+                         "#   POINTS2D[] as (X, Y, POINT3D_ID)\n")
+        self.count = 0
+
+    def add(self, im: ColmapImage) -> None:
+        self.count += 1
+        image_id = self.count
         fx, fy, cx, cy = (float(v) for v in im.intrinsics)
-        cams.append(f"{image_id} PINHOLE {im.size[0]} {im.size[1]} {fx!r} {fy!r} {cx + 0.5!r} {cy + 0.5!r}")
+        self._cams.write(f"{image_id} PINHOLE {im.size[0]} {im.size[1]} {fx!r} {fy!r} {cx + 0.5!r} {cy + 0.5!r}\n")
         cam_from_world = np.linalg.inv(im.world_from_cam)
         q = quaternion_wxyz(cam_from_world[:3, :3])
         t = cam_from_world[:3, 3]
         pose_text = " ".join(repr(float(v)) for v in (*q, *t))
-        imgs.append(f"{image_id} {pose_text} {image_id} {im.name}")
-        imgs.append("")
-    (folder / "cameras.txt").write_text("\n".join(cams) + "\n")
-    (folder / "images.txt").write_text("\n".join(imgs) + "\n")
-    (folder / "points3D.txt").write_text("# 3D point list (empty: the dense map is in map.ply)\n")
-    return folder
+        self._imgs.write(f"{image_id} {pose_text} {image_id} {im.name}\n\n")
+
+    def close(self) -> Path:
+        self._cams.close()
+        self._imgs.close()
+        (self.folder / "points3D.txt").write_text("# 3D point list (empty: the dense map is in map.ply)\n")
+        return self.folder
+
+
+def write_colmap(folder: Path, images: dict[int, ColmapImage]) -> Path:
+    """cameras.txt (one PINHOLE camera per keyframe), images.txt (cam_from_world), empty points3D.txt."""
+    writer = ColmapWriter(folder)
+    for kf_id in sorted(images):
+        writer.add(images[kf_id])
+    return writer.close()
 
 
 def read_colmap(folder: Path) -> dict[str, ColmapImage]:
@@ -215,16 +234,48 @@ def export_all(out: Path, xyz: np.ndarray, rgb: np.ndarray, depths: dict[int, Ke
         metric: depth maps as 16-bit PNG mm (True) or npz (scale-free map).
         jpegs: keyframe images (written to images/ under their camera name).
     """
-    out = Path(out)
-    ply = write_ply(out / "map.ply", xyz, rgb, label_rgb)
-    depth_paths = write_depth_maps(out / "depth", depths, metric)
-    colmap = write_colmap(out / "colmap", cameras)
-    image_paths = []
-    for kf_id, data in (jpegs or {}).items():
-        if kf_id in cameras:
-            path = out / "images" / cameras[kf_id].name
+    writer = ExportWriter(out, xyz, rgb, metric, label_rgb)
+    for kf_id in sorted(depths):
+        writer.add_depth(kf_id, depths[kf_id])
+    for kf_id in sorted(cameras):
+        writer.add_camera(cameras[kf_id], (jpegs or {}).get(kf_id))
+    return writer.close()
+
+
+class ExportWriter:
+    """`export_all` one keyframe at a time (ascending ids): the point cloud at once, then each keyframe's depth
+    map, camera and image as it is added, so an export holds one keyframe at a time."""
+
+    def __init__(self, out: Path, xyz: np.ndarray, rgb: np.ndarray, metric: bool,
+                 label_rgb: np.ndarray | None = None) -> None:
+        self.out = Path(out)
+        self.metric = metric
+        self.n_points = len(xyz)
+        self.ply = write_ply(self.out / "map.ply", xyz, rgb, label_rgb)
+        (self.out / "depth").mkdir(parents=True, exist_ok=True)
+        self.colmap = ColmapWriter(self.out / "colmap")
+        self.depth_paths: list[Path] = []
+        self.image_paths: list[Path] = []
+
+    def add_depth(self, kf_id: int, depth: KeyframeDepth) -> None:
+        self.depth_paths += write_depth_maps(self.out / "depth", {kf_id: depth}, self.metric)
+
+    def add_camera(self, camera: ColmapImage, jpeg: bytes | None = None) -> None:
+        self.colmap.add(camera)
+        if jpeg is not None:
+            path = self.out / "images" / camera.name
             path.parent.mkdir(parents=True, exist_ok=True)
-            path.write_bytes(data)
-            image_paths.append(path)
-    log.info("exported %d points, %d depth maps, %d cameras to %s", len(xyz), len(depth_paths), len(cameras), out)
-    return ExportResult(ply, depth_paths, colmap, image_paths)
+            path.write_bytes(jpeg)
+            self.image_paths.append(path)
+
+    def add(self, kf_id: int, depth: KeyframeDepth, camera: ColmapImage | None, jpeg: bytes | None = None) -> None:
+        """A keyframe's depth map and, unless None (an invalid pose), its camera and image."""
+        self.add_depth(kf_id, depth)
+        if camera is not None:
+            self.add_camera(camera, jpeg)
+
+    def close(self) -> ExportResult:
+        colmap = self.colmap.close()
+        log.info("exported %d points, %d depth maps, %d cameras to %s", self.n_points, len(self.depth_paths),
+                 self.colmap.count, self.out)
+        return ExportResult(self.ply, self.depth_paths, colmap, self.image_paths)

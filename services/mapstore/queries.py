@@ -88,10 +88,10 @@ def export(state: MapState, stream: str, chunk: int, size: int) -> MapChunk:
 
 def stats(state: MapState, stream: str) -> MapStats:
     fused = state.map.fused()
-    return MapStats(stream, state.map.revision, time.time_ns(), keyframes=len(state.map.contents),
+    return MapStats(stream, state.map.revision, time.time_ns(), keyframes=state.keyframe_count(),
                     points=int(len(fused.keys)), voxels=int(len(fused.keys)), backbone=_basis_space(state),
                     pca_version=max(state.bases) if state.bases else -1, metric=bool(state.metric),
-                    keyframes_without_codes=sum(not c.has_codes for c in state.map.contents.values()))
+                    keyframes_without_codes=state.without_codes_count())
 
 
 def answer(state: MapState, stream: str, key: str, params: dict, payload: bytes | None) -> bytes:

@@ -33,7 +33,7 @@ from services.mapstore import queries
 from services.mapstore.config import MapstoreSettings
 from services.mapstore.core.keyframe import KeyframeDepth
 from services.mapstore.core.scoring import PcaBasis
-from services.mapstore.export import ColmapImage, export_all
+from services.mapstore.export import ColmapImage, ExportWriter
 from services.mapstore.state import MapState
 
 log = logging.getLogger(__name__)
@@ -87,44 +87,56 @@ def handle_eos(state: MapState, msg: Eos, cfg: MapstoreSettings) -> list[tuple[s
 def stream_complete(state: MapState) -> bool:
     """ba's final graph is in, and so is every keyframe it names (keyframes come from features, on another key)
     with its codes and the PCA basis they were coded with (the ``codes`` and ``pca`` keys may lag behind the
-    keyframe) — except codes of a real-time stream's keyframes, which the backbone may have skipped."""
+    keyframe) — except codes of a real-time stream's keyframes, which the backbone may have skipped. A folded
+    keyframe is final (ba's final graph names only the keyframes it still holds, which are never folded)."""
     with state.lock:
         if state.final_keyframes is None:
             return False
-        fused = set(state.map.contents) - set(state.map.held)
-        return state.final_keyframes <= fused and all(
-            state.map.contents[k].has_codes or k in state.realtime for k in state.final_keyframes)
+        held = set(state.map.held)
+
+        def done(k: int) -> bool:
+            content = state.map.contents.get(k)
+            if content is None:
+                return state.map.is_folded(k)
+            return k not in held and (content.has_codes or k in state.realtime)
+
+        return all(done(k) for k in state.final_keyframes)
 
 
 def finish_stream(state: MapState, msg: Eos, cfg: MapstoreSettings) -> list[tuple[str, Message]]:
     state.pending_eos, state.final_keyframes = None, None
-    with state.lock:
-        without = state.map.without_codes
     log.info("end of stream", extra={"stream": msg.stream, "seq": msg.seq, "stage": msg.stage,
-                                     "keyframes_without_codes": len(without)})
+                                     "keyframes_without_codes": state.without_codes_count(),
+                                     "keyframes_folded": state.map.folded_count, "late_codes": state.late_codes})
     if cfg.export_dir:
         export_state(state, Path(cfg.export_dir))
-    with state.lock:
-        count = len(state.map.contents)
+    count = state.keyframe_count()
     return [(keys.topic(msg.stream, keys.EOS), Eos(msg.stream, msg.seq, time.time_ns(), stage="mapstore", count=count))]
 
 
 def export_state(state: MapState, out: Path):
-    """Write map.ply, depth maps, COLMAP cameras and keyframe images of the current map to `out`."""
+    """Write map.ply, depth maps, COLMAP cameras and keyframe images of the current map to `out`: the keyframes
+    are read from the store a page at a time (folded ones are only there), live ones as the map holds them."""
     with state.lock:
         fused = state.map.fused()
-        depths = {k: d for k, d in state.map.depths.items() if k in state.map.poses and k in state.map.contents}
-        cams = {}
-        for k in depths:
-            pose = state.map.poses[k]
-            if not _is_rigid(pose):  # a diverged BA can publish such a pose; leave the camera out, not the export
-                log.warning("camera with an invalid pose left out of the export", extra={"seq": k})
-                continue
-            h, w = state.map.contents[k].image_hw
-            cams[k] = ColmapImage(f"{k:06d}.jpg", pose, np.asarray(depths[k].intrinsics), (w, h))
-        jpegs = {k: state.store.image(k) for k in cams}
-        return export_all(out, fused.xyz, fused.colours, depths, cams, state.metric,
-                          {k: v for k, v in jpegs.items() if v is not None})
+        writer = ExportWriter(out, fused.xyz, fused.colours, state.metric)
+        for records, _ in state.store.iter_keyframes(codes=False):
+            for r in records:
+                k = r.kf_id
+                if state.map.is_folded(k):
+                    content, depth, pose = r.content, r.depth, r.pose
+                else:
+                    content, depth, pose = state.map.contents.get(k), state.map.depths.get(k), state.map.poses.get(k)
+                if content is None or depth is None or pose is None:
+                    continue
+                camera = None
+                if _is_rigid(pose):  # a diverged BA can publish such a pose; leave the camera out, not the export
+                    h, w = content.image_hw
+                    camera = ColmapImage(f"{k:06d}.jpg", pose, np.asarray(depth.intrinsics), (w, h))
+                else:
+                    log.warning("camera with an invalid pose left out of the export", extra={"seq": k})
+                writer.add(k, depth, camera, state.store.image(k) if camera is not None else None)
+        return writer.close()
 
 
 def _is_rigid(pose: np.ndarray, tol: float = 1e-3) -> bool:

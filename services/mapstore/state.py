@@ -17,6 +17,16 @@ them; codes whose keyframe has not come yet (another key: Zenoh orders per key o
 codes whose basis has not come yet are committed but wait for the basis before they enter the map (the keyframe
 stays in it for geometry meanwhile; a restart in between reloads it with its codes, held for the basis like any
 stored keyframe whose basis is unknown). A ``Keyframe`` that carries its codes works as before.
+
+Flat memory: each ba graph lists the keyframes ba still holds; a keyframe older than the newest of them that it
+does not list has left ba's graph for good (ba keeps its newest ``keep_keyframes`` and sometimes drops a
+redundant one from the middle). Such a keyframe is *settled* once its codes are in (or it came from a real-time
+stream, whose codes may never come) and no codes wait for its basis; after every re-fusion the oldest settled
+keyframes whose carving window is settled too are folded (`KeyframeMap.fold`): recorded in the store's
+``folded`` table first, then their sums frozen and their arrays dropped. Graph updates, repeats and codes for a
+folded keyframe stay out of the map (codes are still committed). Beyond ``max_live_keyframes`` held, keyframes
+that have left ba's graph are folded even without their codes. A restart streams the store in id order
+(`MapStore.iter_keyframes`), folding the recorded keyframes as soon as their window is loaded.
 """
 
 from __future__ import annotations
@@ -38,6 +48,7 @@ from services.mapstore.core.scoring import PcaBasis, ScoringIndex
 from services.mapstore.store import MapStore
 
 log = logging.getLogger(__name__)
+RESTART_PAGE = 64  # keyframes read from the store at a time when a restart streams them
 
 
 class MapState:
@@ -47,33 +58,61 @@ class MapState:
         self.cfg = cfg
         self.lock = threading.RLock()
         self.store = MapStore(Path(cfg.db_path.format(stream=cfg.stream)), synchronous=cfg.synchronous)
-        stored = self.store.load()
+        stored = self.store.load_static()
         voxel = float(stored.meta["voxel_size"]) if "voxel_size" in stored.meta else None
         self.map = KeyframeMap(cfg.map_params(), voxel_size=voxel, versioned=True)
         self.bases: dict[int, PcaBasis] = stored.bases
         if self.bases:
             self.map.set_code_space(*code_maps_to_latest(self.bases))
         self.metric = stored.meta.get("metric") == "1"
-        self.intrinsics = stored.intrinsics
-        self.realtime: set[int] = stored.realtime  # keyframes of a real-time stream: their codes may never come
+        self.intrinsics: dict[int, np.ndarray] = {}  # live keyframes' intrinsics as they arrived
+        self.realtime: set[int] = set()  # live keyframes of a real-time stream: their codes may never come
         # codes not in the map yet: their keyframe has not arrived (memory only), or their basis (committed)
         self.waiting_codes: dict[int, tuple[int, np.ndarray]] = {}  # kf_id -> (pca_version, (h, w, K) float16)
-        for kf_id, content in stored.contents.items():
-            self.map.add_content(content)
-        for kf_id, depth in stored.depths.items():
-            self.map.set_depth(kf_id, depth)
-        for kf_id, pose in stored.poses.items():
-            self.map.set_pose(kf_id, pose)
-        self.map.refresh()
+        self._graph_seqs: set[int] = set()  # the keyframes ba's latest graph holds ...
+        self._graph_max: int | None = None  # ... and the newest of them (None: no graph since the start)
+        self.late_codes = 0  # codes that came for a keyframe already folded (committed, not in the map)
+        self._load()
         self._index: tuple[int, int, ScoringIndex] | None = None  # (map revision, basis version, index)
         self._deferred: bool | None = None  # None outside batch(); inside, the metric flag of the last write
         # end of stream: ba's EOS is held until its final graph has been applied (or eos_wait_s passed)
         self.final_keyframes: set[int] | None = None
         self.pending_eos = None
         self.eos_deadline = 0.0
-        log.info("map loaded", extra={"stream": cfg.stream, "keyframes": len(stored.contents),
-                                      "held": len(self.map.held), "without_codes": len(self.map.without_codes),
+        log.info("map loaded", extra={"stream": cfg.stream, "keyframes": self.keyframe_count(),
+                                      "folded": self.map.folded_count, "held": len(self.map.held),
+                                      "without_codes": self.without_codes_count(),
                                       "voxels": len(self.map.fused().keys)})
+
+    def _load(self) -> None:
+        """Stream the stored keyframes into the map in id order; the folded ones are folded again (as they were
+        folded: with codes, geometry only, or nothing) once their carving window is loaded."""
+        marked: list[int] = []  # folded in the store, loaded, waiting for their window
+        for records, last in self.store.iter_keyframes(RESTART_PAGE):
+            for r in records:
+                content = r.content
+                if r.folded is not None and r.folded < 2 and content is not None:  # folded without its codes
+                    content = KeyframeContent(r.kf_id, content.t_ns, None, content.colours, content.image_hw, -1)
+                if content is not None:
+                    self.map.add_content(content)
+                if r.folded != 0:  # 0: folded with no contribution (no pose, depth or basis then)
+                    if r.depth is not None:
+                        self.map.set_depth(r.kf_id, r.depth)
+                    if r.pose is not None:
+                        self.map.set_pose(r.kf_id, r.pose)
+                if r.folded is not None:
+                    marked.append(r.kf_id)
+                    continue
+                if r.intrinsics is not None:
+                    self.intrinsics[r.kf_id] = r.intrinsics
+                if r.realtime:
+                    self.realtime.add(r.kf_id)
+            self.map.refresh()
+            n = 0
+            while n < len(marked) and (last or self.map.fold_window_complete(marked[n])):
+                n += 1
+            self.map.fold(marked[:n])
+            del marked[:n]
 
     def close(self) -> None:
         self.store.close()
@@ -89,6 +128,9 @@ class MapState:
             ok, buf = cv2.imencode(".jpg", cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
             jpeg = buf.tobytes() if ok else None
         with self.lock:
+            if self.map.is_folded(kf_id):  # a repeat of a keyframe folded long ago: it is final
+                log.info("keyframe already folded: ignored", extra={"stream": self.cfg.stream, "seq": kf_id})
+                return
             waiting = False
             if codes is not None:  # the keyframe carries its codes (as before codes had their own message)
                 self.waiting_codes.pop(kf_id, None)
@@ -123,6 +165,12 @@ class MapState:
         committed and wait for it (the keyframe stays in the map for geometry meanwhile)."""
         codes = np.asarray(codes).astype(np.float16)
         with self.lock:
+            if self.map.is_folded(kf_id):  # folded before its codes came (real-time, or past max_live_keyframes)
+                self.store.put_codes(kf_id, pca_version, codes)
+                self.late_codes += 1
+                log.info("codes of a folded keyframe: committed, not in the map",
+                         extra={"stream": self.cfg.stream, "seq": kf_id})
+                return
             content = self.map.contents.get(kf_id)
             if content is None:  # another key than the keyframe's: the codes may overtake it
                 self.waiting_codes[kf_id] = (pca_version, codes)
@@ -169,8 +217,14 @@ class MapState:
                                                                       "held": self.map.held[:10]})
 
     def update_graph(self, poses: dict[int, np.ndarray], depths: dict[int, KeyframeDepth], metric: bool) -> int:
-        """Commit then apply poses and depths; re-fuse what changed. Returns the number of re-fused keyframes."""
+        """Commit then apply poses and depths; re-fuse what changed. Returns the number of re-fused keyframes.
+        ``poses`` names every keyframe ba holds (a graph's kf_seqs): older keyframes it does not name have left
+        ba's graph. Poses and depths of folded keyframes are left out (they are final)."""
         with self.lock:
+            if poses:
+                self._graph_seqs, self._graph_max = set(poses), max(poses)
+            poses = {k: p for k, p in poses.items() if not self.map.is_folded(k)}
+            depths = {k: d for k, d in depths.items() if not self.map.is_folded(k)}
             self.store.put_graph(poses, depths)
             for kf_id, depth in depths.items():
                 self.map.set_depth(kf_id, depth)
@@ -207,19 +261,75 @@ class MapState:
             meta["metric"] = "1" if metric else "0"
         if meta:
             self.store.set_meta(meta)
+        self._fold()
         return len(report.refreshed)
+
+    # ----- folding --------------------------------------------------------------------------------
+    def _retired(self, kf_id: int) -> bool:
+        """Whether keyframe ``kf_id`` has left ba's graph for good (older than its newest, not in it)."""
+        return self._graph_max is not None and kf_id < self._graph_max and kf_id not in self._graph_seqs
+
+    def _settled(self, kf_id: int) -> bool:
+        """Nothing will change keyframe ``kf_id`` any more: it has left ba's graph, and its codes are in the map
+        (with their basis) or not expected (a real-time stream's); a graph's keyframe that never came counts."""
+        if not self._retired(kf_id):
+            return False
+        content = self.map.contents.get(kf_id)
+        if content is None:  # never came (keyframes come in order: later ones are in), codes waiting for it moot
+            return True
+        if kf_id in self.waiting_codes:  # its codes wait for their basis
+            return False
+        return content.pca_version in self.bases if content.has_codes else kf_id in self.realtime
+
+    def _fold(self) -> None:
+        """Fold the keyframes that can be (lock held, map refreshed): recorded first, then frozen and dropped."""
+        if not self.cfg.fold_keyframes or self._graph_max is None:
+            return
+        ids = self.map.foldable(self._settled)
+        forced = False
+        if not ids:
+            excess = len(self.map.live) - self.cfg.max_live_keyframes
+            if excess > 0:
+                ids, forced = self.map.foldable(self._retired)[:excess], True
+        if not ids:
+            return
+        modes = [(k, self.map.fold_mode(k)) for k in ids]
+        self.store.put_folded(modes)
+        self.map.fold(ids)
+        for kf_id in ids:
+            self.intrinsics.pop(kf_id, None)
+            self.realtime.discard(kf_id)
+            self.waiting_codes.pop(kf_id, None)
+        if forced:
+            log.warning("keyframes folded before their codes came (max_live_keyframes reached)",
+                        extra={"stream": self.cfg.stream, "seq": ids[-1], "folded": len(ids),
+                               "without_codes": sum(m < 2 for _, m in modes)})
+        log.debug("keyframes folded", extra={"stream": self.cfg.stream, "seq": ids[-1], "folded": len(ids),
+                                             "live": len(self.map.live)})
 
     # ----- reads ----------------------------------------------------------------------------------
     def committed_seq(self) -> int:
         """The highest keyframe seq committed (-1: none): what the mapstore reports as its progress."""
         with self.lock:
-            return max(self.map.contents, default=-1)
+            return max(max(self.map.contents, default=-1), self.map.folded_upto)
 
     def has_codes(self, kf_id: int) -> bool:
-        """Whether keyframe ``kf_id`` is in the map with its codes."""
+        """Whether keyframe ``kf_id`` is in the map with its codes (folded ones too)."""
         with self.lock:
+            if self.map.is_folded(kf_id):
+                return self.store.folded_mode(kf_id) == 2
             content = self.map.contents.get(kf_id)
             return content is not None and content.has_codes
+
+    def keyframe_count(self) -> int:
+        """Keyframes in the map: held in memory plus folded."""
+        with self.lock:
+            return len(self.map.contents) + self.map.folded_count
+
+    def without_codes_count(self) -> int:
+        """Keyframes in the map without codes: live ones whose codes have not come, and ones folded without."""
+        with self.lock:
+            return len(self.map.without_codes) + self.map.folded_without_codes
 
     def basis(self) -> PcaBasis:
         if not self.bases:

@@ -4,6 +4,11 @@ Why SQLite/WAL: one file, atomic multi-row transactions (a graph update of many 
 commits all or nothing), readers never block the writer, and a killed process loses nothing that was
 committed. A keyframe is acknowledged (and applied to the in-memory map) only after its transaction
 commits, so what queries see is always a subset of what a restart reloads.
+
+Folded keyframes (``core/map.py``: final, their sums frozen, their arrays no longer in memory) stay here; the
+``folded`` table records how each was folded (with codes, geometry only, or not at all), so a restart rebuilds
+the same frozen sums. `iter_keyframes` reads the keyframes page by page in id order: a restart, an export and
+`kmvipe map export` never hold every keyframe at once.
 """
 
 from __future__ import annotations
@@ -14,7 +19,7 @@ import sqlite3
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Iterator, Literal, NamedTuple
 
 import numpy as np
 
@@ -50,6 +55,11 @@ MIGRATIONS: list[str] = [
         SELECT kf_id, t_ns, pca_version, height, width, codes, colours, intrinsics FROM keyframes;
     DROP TABLE keyframes;
     ALTER TABLE keyframes_v3 RENAME TO keyframes;
+    """,
+    # 4: folded keyframes (flat memory): mode 2 = folded with its codes, 1 = geometry only (codes that came later
+    # stay out of the map), 0 = folded with no contribution (it had no pose, depth or basis)
+    """
+    CREATE TABLE folded (kf_id INTEGER PRIMARY KEY, mode INTEGER NOT NULL);
     """,
 ]
 SCHEMA_VERSION = len(MIGRATIONS)
@@ -103,6 +113,18 @@ class StoredMap:
     poses: dict[int, np.ndarray] = field(default_factory=dict)  # (4, 4) float64 world_from_cam
     bases: dict[int, PcaBasis] = field(default_factory=dict)
     meta: dict[str, str] = field(default_factory=dict)
+
+
+class StoredKeyframe(NamedTuple):
+    """One keyframe id's rows (any may be missing: a graph can name a keyframe that never came)."""
+
+    kf_id: int
+    content: KeyframeContent | None  # codes None: not arrived yet (or not read: ``iter_keyframes(codes=False)``)
+    depth: KeyframeDepth | None
+    pose: np.ndarray | None  # (4, 4) float64 world_from_cam
+    intrinsics: np.ndarray | None  # (4,) float64 as the keyframe arrived
+    realtime: bool
+    folded: int | None  # None: live; else the fold mode (2 with codes, 1 geometry only, 0 nothing)
 
 
 class MapStore:
@@ -189,9 +211,20 @@ class MapStore:
         self._write([("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)", (k, str(v)))
                      for k, v in values.items()])
 
+    def put_folded(self, modes: list[tuple[int, int]]) -> None:
+        """Record folded keyframes: (kf_id, mode) with mode 2 = with codes, 1 = geometry only, 0 = nothing."""
+        self._write([("INSERT OR REPLACE INTO folded (kf_id, mode) VALUES (?, ?)", (int(k), int(m))) for k, m in modes])
+
+    def folded_mode(self, kf_id: int) -> int | None:
+        """How keyframe ``kf_id`` was folded (2 with codes, 1 geometry only, 0 nothing); None: not folded."""
+        with self._lock:
+            row = self._conn.execute("SELECT mode FROM folded WHERE kf_id = ?", (int(kf_id),)).fetchone()
+        return None if row is None else int(row[0])
+
     def delete_keyframe(self, kf_id: int) -> None:
         """Remove a keyframe and everything stored about it."""
-        self._write([(f"DELETE FROM {t} WHERE kf_id = ?", (kf_id,)) for t in ("keyframes", "depths", "poses", "images")])
+        self._write([(f"DELETE FROM {t} WHERE kf_id = ?", (kf_id,))
+                     for t in ("keyframes", "depths", "poses", "images", "folded")])
 
     def keyframe_ids(self) -> list[int]:
         """Ids of the committed keyframes, ascending."""
@@ -201,6 +234,55 @@ class MapStore:
         """The keyframe's JPEG image, if it was stored."""
         row = self._conn.execute("SELECT jpeg FROM images WHERE kf_id = ?", (kf_id,)).fetchone()
         return None if row is None else bytes(row[0])
+
+    def load_static(self) -> StoredMap:
+        """The bases and metadata only (no keyframes: `iter_keyframes` streams those)."""
+        out = StoredMap()
+        with self._lock:
+            q = self._conn.execute
+            out.bases = {v: PcaBasis(v, from_blob(m), from_blob(c), b)
+                         for v, b, m, c in q("SELECT version, backbone, mean, components FROM pca")}
+            out.meta = dict(q("SELECT key, value FROM meta"))
+        return out
+
+    def iter_keyframes(self, page: int = 64, codes: bool = True) -> Iterator[tuple[list[StoredKeyframe], bool]]:
+        """Every keyframe id (of the keyframes, depths and poses tables) in ascending order, ``page`` ids at a time:
+        yields (records, whether this is the last page). Each page is its own short read; ``codes=False`` leaves
+        the codes unread (content.codes None)."""
+        last = -(1 << 62)
+        while True:
+            with self._lock:
+                q = self._conn.execute
+                ids = [r[0] for r in q("SELECT kf_id FROM keyframes WHERE kf_id > ? UNION SELECT kf_id FROM depths "
+                                       "WHERE kf_id > ? UNION SELECT kf_id FROM poses WHERE kf_id > ? "
+                                       "ORDER BY kf_id LIMIT ?", (last, last, last, page))]
+                if not ids:
+                    yield [], True
+                    return
+                span = (last, ids[-1])
+                where = "WHERE kf_id > ? AND kf_id <= ?"
+                kfs = {r[0]: r for r in q(f"SELECT kf_id, t_ns, pca_version, height, width, "
+                                          f"{'codes' if codes else 'NULL'}, colours, intrinsics, realtime "
+                                          f"FROM keyframes {where}", span)}
+                depths = {r[0]: r for r in q("SELECT kf_id, intrinsics, disparity, static_weight, confidence "
+                                             f"FROM depths {where}", span)}
+                poses = dict(q(f"SELECT kf_id, world_from_cam FROM poses {where}", span))
+                folded = dict(q(f"SELECT kf_id, mode FROM folded {where}", span))
+            records = []
+            for kf_id in ids:
+                k, d = kfs.get(kf_id), depths.get(kf_id)
+                content = None if k is None else KeyframeContent(kf_id, k[1], from_blob(k[5]), from_blob(k[6]),
+                                                                 (k[3], k[4]), k[2] if k[5] is not None else -1)
+                depth = None if d is None else KeyframeDepth(from_blob(d[2]), from_blob(d[1]), from_blob(d[3]),
+                                                             from_blob(d[4]))
+                records.append(StoredKeyframe(kf_id, content, depth, from_blob(poses.get(kf_id)),
+                                              None if k is None else from_blob(k[7]), bool(k is not None and k[8]),
+                                              folded.get(kf_id)))
+            done = len(ids) < page
+            yield records, done
+            if done:
+                return
+            last = ids[-1]
 
     def load(self) -> StoredMap:
         """Everything committed, in one read transaction (a consistent snapshot)."""

@@ -12,6 +12,11 @@ map's current version, each contribution entering through the affine map of its 
 A keyframe whose codes have not arrived contributes geometry and colours only (``codes`` None): code sums have
 their own weight and point count per voxel, so a voxel seen only by such keyframes has no code (NaN in
 `FusedVoxels.codes`, ``code_weight`` 0) rather than the zero code, which would decode to the PCA mean.
+
+Folded keyframes (final: no later change can reach them, ``core/map.py``) hand their contribution to a
+`FrozenSums` of their PCA version: one merged contribution per version whose size follows the map (its voxels),
+not the number of keyframes. The grid treats it like any other contribution (a new basis re-sums it through its
+version's map), so the fused map is the same with or without folding.
 """
 
 from __future__ import annotations
@@ -95,6 +100,74 @@ def make_contribution(
         colours=wsum(colours.astype(np.float32), np.float32),
         count=np.diff(np.r_[starts, n]).astype(np.int64),
     )
+
+
+def merge_contributions(parts: list[Contribution]) -> Contribution:
+    """One contribution with the per-voxel sums of ``parts`` (all with codes of one K, or all without codes)."""
+    parts = [p for p in parts if p.keys.size] or parts[:1]
+    if len(parts) == 1:
+        return parts[0]
+    keys = np.concatenate([p.keys for p in parts])
+    order = np.argsort(keys, kind="stable")
+    sk = keys[order]
+    starts = np.flatnonzero(np.r_[True, sk[1:] != sk[:-1]])
+
+    def total(name: str, dtype: type) -> np.ndarray:
+        values = np.concatenate([getattr(p, name) for p in parts])[order]
+        return np.add.reduceat(values.astype(np.float64) if dtype != np.int64 else values, starts, axis=0).astype(dtype)
+
+    with_codes = parts[0].codes is not None
+    if any((p.codes is not None) != with_codes for p in parts):
+        raise ValueError("cannot merge contributions with and without codes")
+    return Contribution(sk[starts], total("weight", np.float64), total("xyz", np.float64),
+                        total("codes", np.float32) if with_codes else None, total("colours", np.float32),
+                        total("count", np.int64))
+
+
+class FrozenSums:
+    """The summed contributions of the folded keyframes of one PCA version (or of those without codes).
+
+    Added contributions wait in a list and are merged (sort by key, sum) once they hold as many voxels as a
+    quarter of the merged part (at least ``min_pending``): memory stays within 1.25× the voxels this version
+    touched, and each voxel is re-sorted O(log) times over a stream.
+    """
+
+    def __init__(self, min_pending: int = 4096) -> None:
+        self._merged: Contribution | None = None
+        self._pending: list[Contribution] = []
+        self._pending_rows = 0
+        self.min_pending = min_pending
+
+    def add(self, c: Contribution) -> None:
+        """Add one keyframe's contribution (its sums in this part's version)."""
+        self._pending.append(c)
+        self._pending_rows += c.keys.size
+        merged_rows = 0 if self._merged is None else self._merged.keys.size
+        if self._pending_rows >= max(self.min_pending, merged_rows // 4):
+            self._merge()
+
+    def _merge(self) -> None:
+        if self._pending:
+            self._merged = merge_contributions(([self._merged] if self._merged is not None else []) + self._pending)
+            self._pending, self._pending_rows = [], 0
+
+    def contribution(self) -> Contribution:
+        """Everything added, as one contribution (distinct keys)."""
+        self._merge()
+        if self._merged is None:
+            raise ValueError("nothing folded into these sums yet")
+        return self._merged
+
+    def __len__(self) -> int:
+        """Voxels held (merged, plus the rows still pending)."""
+        return (0 if self._merged is None else self._merged.keys.size) + self._pending_rows
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the arrays held."""
+        parts = ([self._merged] if self._merged is not None else []) + self._pending
+        return sum(a.nbytes for p in parts for a in (p.keys, p.weight, p.xyz, p.codes, p.colours, p.count)
+                   if a is not None)
 
 
 class FusedVoxels(NamedTuple):

@@ -13,21 +13,35 @@ A keyframe without codes (features sends a keyframe's geometry at once and its c
 geometry at once: points, colours and depth evidence for carving, no code sums (code weight 0), no semantic
 carving evidence either way. `set_codes` gives it its codes later and re-fuses just it (its neighbours' depth
 consistency does not depend on codes; the earlier keyframes it may carve are re-checked).
+
+Folding (flat memory over an unbounded stream): a keyframe is *settled* when nothing upstream will change it
+again (the caller decides: it has left ba's graph and its codes are in or not expected). The oldest keyframes
+whose `fold_window` later ready keyframes — the ones that may carve them, and their consistency neighbours — are
+settled too can no longer change at all: `fold` hands their contribution to a frozen accumulator per PCA version
+(`FrozenSums`, sized by the map's voxels, not by the stream) and drops their codes, colours, depth and carving
+state. Folding goes in id order, so the live keyframes are always the newest ones; the last
+`consistency.neighbours` folded ready keyframes keep their depth and pose (ghosts) as consistency neighbours of the
+oldest live ones. The fused map is the same as without folding, except that folded points are final: a new PCA
+basis converts their code sums exactly but no longer re-judges their semantic carving, and codes or graph updates
+for a folded keyframe are ignored (the caller keeps them out). Frozen sums are kept per PCA version for the newest
+`frozen_versions` versions; an older version's sums are converted into the current version and merged there
+(exact now; a later basis then reaches them through one more projection), so many refits cannot multiply them.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
-from bisect import bisect_left
-from typing import NamedTuple
+from bisect import bisect_left, bisect_right
+from typing import Callable, NamedTuple
 
 import numpy as np
 
-from services.common.pca_codes import CodeMap, code_map, convert_codes, identity_map
+from services.common.pca_codes import CodeMap, code_map, convert_codes, convert_sums, identity_map
 from services.mapstore.config import MapParams
 from services.mapstore.core.carving import CarveView, free_space_votes, unit_codes
 from services.mapstore.core.consistency import NeighbourView, depth_consistency
-from services.mapstore.core.fusion import Contribution, FusedVoxels, VoxelGrid, make_contribution
+from services.mapstore.core.fusion import Contribution, FrozenSums, FusedVoxels, VoxelGrid, make_contribution
 from services.mapstore.core.keyframe import KeyframeContent, KeyframeDepth, candidate_points, world_points
 from services.mapstore.core.scoring import PcaBasis
 
@@ -62,7 +76,8 @@ def code_maps_to_latest(bases: dict[int, PcaBasis]) -> tuple[int, dict[int, Code
 class KeyframeMap:
     """Mutable map state; no I/O. Feed it keyframe content, depths and poses, then `refresh()`."""
 
-    def __init__(self, params: MapParams, voxel_size: float | None = None, versioned: bool = False) -> None:
+    def __init__(self, params: MapParams, voxel_size: float | None = None, versioned: bool = False,
+                 frozen_versions: int = 8) -> None:
         """
         Args:
             params: the map parameters.
@@ -70,7 +85,9 @@ class KeyframeMap:
                 (absolute, or relative to the median depth of the first fused keyframe).
             versioned: hold every keyframe until `set_code_space` gives a map for its PCA version; False fuses
                 codes as they come (for callers whose keyframes share one version).
+            frozen_versions: PCA versions whose folded sums are kept apart (older ones merge into the current).
         """
+        self.frozen_versions = frozen_versions
         self.versioned = versioned
         self.params = params
         self.contents: dict[int, KeyframeContent] = {}
@@ -93,10 +110,16 @@ class KeyframeMap:
         self._ready: list[int] = []  # sorted ids with content, depth and pose
         self._fused_cache: FusedVoxels | None = None
         self.revision = 0
+        self._frozen: dict[int | None, FrozenSums] = {}  # folded keyframes' sums per PCA version (None: no codes)
+        self.folded_upto = -1  # the newest folded keyframe id: every keyframe at or below it is folded
+        self.folded_count = 0  # keyframes folded (with content)
+        self.folded_without_codes = 0  # of those, folded without codes in the map (geometry only, or nothing)
 
     # ----- inputs -------------------------------------------------------------------------
     def add_content(self, content: KeyframeContent) -> None:
-        """Add or replace a keyframe's codes (None: not yet in) and colours."""
+        """Add or replace a keyframe's codes (None: not yet in) and colours (ignored for a folded keyframe)."""
+        if self.is_folded(content.kf_id):
+            return
         self.contents[content.kf_id] = content
         self._unit_codes.pop(content.kf_id, None)
         self._touch(content.kf_id)
@@ -105,7 +128,10 @@ class KeyframeMap:
         """Give a keyframe (content already added, e.g. without codes) its (h, w, K) codes in ``pca_version``.
 
         Only the keyframe itself is re-fused (its points' code sums and its own semantic carving) and the earlier
-        keyframes it witnesses for are re-checked; its neighbours' depth consistency does not depend on codes."""
+        keyframes it witnesses for are re-checked; its neighbours' depth consistency does not depend on codes.
+        Ignored for a folded keyframe."""
+        if self.is_folded(kf_id):
+            return
         old = self.contents[kf_id]
         content = KeyframeContent(kf_id, old.t_ns, codes, old.colours, old.image_hw, pca_version)
         was_ready = self._is_ready(kf_id)
@@ -125,15 +151,20 @@ class KeyframeMap:
         return sorted(k for k, c in self.contents.items() if not c.has_codes)
 
     def set_depth(self, kf_id: int, depth: KeyframeDepth) -> None:
-        """Set a keyframe's latest disparity/weights (its grid must match its codes' grid)."""
+        """Set a keyframe's latest disparity/weights (its grid must match its codes' grid); ignored once folded."""
+        if self.is_folded(kf_id):
+            return
         self.depths[kf_id] = depth
         self._touch(kf_id)
 
     def set_pose(self, kf_id: int, world_from_cam: np.ndarray) -> None:
-        """Set a keyframe's latest (4, 4) float64 world_from_cam; an unchanged pose is a no-op."""
+        """Set a keyframe's latest (4, 4) float64 world_from_cam; an unchanged pose (or a folded keyframe's) is a
+        no-op."""
         pose = np.asarray(world_from_cam, dtype=np.float64)
         if pose.shape != (4, 4):
             raise ValueError(f"world_from_cam must be (4, 4), got {pose.shape}")
+        if self.is_folded(kf_id):
+            return
         old = self.poses.get(kf_id)
         if old is not None and np.array_equal(old, pose):
             return
@@ -141,7 +172,9 @@ class KeyframeMap:
         self._touch(kf_id)
 
     def remove(self, kf_id: int) -> None:
-        """Forget a keyframe and take its points out of the map at the next refresh."""
+        """Forget a keyframe and take its points out of the map at the next refresh (a folded one stays)."""
+        if self.is_folded(kf_id):
+            return
         for table in (self.contents, self.depths, self.poses, self._unit_codes):
             table.pop(kf_id, None)
         self._touch(kf_id)
@@ -160,7 +193,7 @@ class KeyframeMap:
             raise ValueError(f"code maps must include the target version {version}")
         if not self.versioned:
             raise ValueError("set_code_space needs a map built with versioned=True")
-        missing = {v for _, v in self._contrib.values() if v is not None} - set(maps)
+        missing = ({v for _, v in self._contrib.values()} | set(self._frozen)) - {None} - set(maps)
         if missing:
             raise ValueError(f"no code map for fused versions {sorted(missing)}")
         held = [k for k in self.contents if not self._is_ready(k)]
@@ -170,7 +203,7 @@ class KeyframeMap:
         self._unit_codes.clear()
         self._views.clear()
         if self._grid is not None:
-            self._grid.recode([(c, self._code_maps[v]) for c, v in self._contrib.values() if v is not None],
+            self._grid.recode([(c, self._code_maps[v]) for c, v in self._parts() if v is not None],
                               maps[version].matrix.shape[0])
         for kf_id in held:
             if self._is_ready(kf_id):
@@ -194,7 +227,7 @@ class KeyframeMap:
             self._ready.pop(pos)
         self._views.pop(kf_id, None)
         self._dirty.add(kf_id)
-        self._dirty.update(self._neighbours(kf_id))
+        self._dirty.update(k for k in self._neighbours(kf_id) if k > self.folded_upto)  # not the ghosts
         self._recheck.update(self._earlier(kf_id))
 
     def _neighbours(self, kf_id: int) -> list[int]:
@@ -204,9 +237,9 @@ class KeyframeMap:
         return self._ready[max(0, pos - n) : pos] + self._ready[after : after + n]
 
     def _earlier(self, kf_id: int) -> list[int]:
-        """The ready keyframes before `kf_id` whose points it may carve."""
+        """The live ready keyframes before `kf_id` whose points it may carve (folded ones are final)."""
         pos = bisect_left(self._ready, kf_id)
-        return self._ready[max(0, pos - self.params.carving.later_keyframes) : pos]
+        return [k for k in self._ready[max(0, pos - self.params.carving.later_keyframes) : pos] if k > self.folded_upto]
 
     def _later(self, kf_id: int) -> list[int]:
         """The ready keyframes after `kf_id` that may carve its points, most recent first."""
@@ -295,10 +328,10 @@ class KeyframeMap:
 
     def refresh(self) -> RefreshReport:
         """Re-fuse every dirty keyframe (subtract its old contribution, add the new one)."""
-        recheck = self._recheck - self._dirty
+        recheck = {k for k in self._recheck - self._dirty if k > self.folded_upto}
         self._dirty.update(k for k in recheck if k not in self._carved or self._carving_changed(k))
         self._recheck.clear()
-        dirty = sorted(self._dirty)
+        dirty = sorted(k for k in self._dirty if k > self.folded_upto)
         self._dirty.clear()
         for kf_id in dirty:
             old = self._contrib.pop(kf_id, None)
@@ -342,10 +375,122 @@ class KeyframeMap:
         return self._fused_cache
 
     def rebuild(self, voxel_size: float | None = None) -> RefreshReport:
-        """Drop all fusion state and re-fuse every keyframe (e.g. after a scale change)."""
+        """Drop all fusion state and re-fuse every live keyframe (e.g. after a scale change). Folded keyframes'
+        sums are kept as they are, so with any folded the voxel size cannot change (None keeps it)."""
+        if self._frozen:
+            if voxel_size is not None and voxel_size != self.voxel_size:
+                raise ValueError("folded keyframes are fused at their voxel size; it cannot change")
+            voxel_size = self.voxel_size
         self.voxel_size = voxel_size
         if voxel_size is None and self.params.fusion.voxel_mode == "absolute":
             self.voxel_size = self.params.fusion.voxel_size
         self._grid, self._contrib, self._carved, self._recheck = None, {}, {}, set()
-        self._dirty = set(self.contents) | set(self.depths) | set(self.poses)
+        for version, part in self._frozen.items():
+            cmap = self._code_maps.get(version)
+            if self._grid is None:
+                self._grid = VoxelGrid(self._code_dim(None, cmap))
+            self._grid.apply(part.contribution(), +1, cmap)
+        self._dirty = {k for k in set(self.contents) | set(self.depths) | set(self.poses) if k > self.folded_upto}
+        self.revision += 1
+        self._fused_cache = None
         return self.refresh()
+
+    # ----- folding ------------------------------------------------------------------------
+    def _parts(self) -> list[tuple[Contribution, int | None]]:
+        """Every contribution in the grid with its PCA version: the live keyframes' and the frozen sums."""
+        return list(self._contrib.values()) + [(f.contribution(), v) for v, f in self._frozen.items()]
+
+    @property
+    def fold_window(self) -> int:
+        """Later ready keyframes a keyframe's points depend on: the ones that may carve them, and its consistency
+        neighbours."""
+        return max(self.params.carving.later_keyframes, self.params.consistency.neighbours)
+
+    def is_folded(self, kf_id: int) -> bool:
+        """Whether keyframe ``kf_id`` is folded (final; its data is no longer held)."""
+        return kf_id <= self.folded_upto
+
+    @property
+    def live(self) -> list[int]:
+        """Keyframe ids held in memory (anything known that is not folded), ascending."""
+        return sorted(k for k in set(self.contents) | set(self.depths) | set(self.poses) if k > self.folded_upto)
+
+    def fold_window_complete(self, kf_id: int) -> bool:
+        """Whether the `fold_window` live ready keyframes after ``kf_id`` are all present."""
+        live_ready = self._ready[bisect_right(self._ready, self.folded_upto):]
+        return len(live_ready) - bisect_right(live_ready, kf_id) >= self.fold_window
+
+    def foldable(self, settled: Callable[[int], bool]) -> list[int]:
+        """The oldest live keyframes that can be folded now, ascending: each settled (``settled(kf_id)``: nothing
+        upstream will change it — pose, depth, codes), and so is every keyframe up to the last of its
+        `fold_window` later ready keyframes. Empty while a refresh is due (fold only up-to-date contributions)."""
+        if self._dirty or self._recheck:
+            return []
+        live = self.live
+        unsettled = next((k for k in live if not settled(k)), None)
+        live_ready = self._ready[bisect_right(self._ready, self.folded_upto):]
+        out = []
+        for kf_id in live:
+            if unsettled is not None and kf_id >= unsettled:
+                break
+            last = bisect_right(live_ready, kf_id) + self.fold_window - 1  # its window's last keyframe
+            if self.fold_window and (last >= len(live_ready)
+                                     or (unsettled is not None and live_ready[last] >= unsettled)):
+                break
+            out.append(kf_id)
+        return out
+
+    def fold_mode(self, kf_id: int) -> int:
+        """How a live keyframe would be folded now: 2 its points with codes, 1 its points without codes (geometry
+        only), 0 nothing (not fused: no pose, depth or basis)."""
+        entry = self._contrib.get(kf_id)
+        return 0 if entry is None else 1 if entry[0].codes is None else 2
+
+    def fold(self, ids: list[int]) -> None:
+        """Fold every live keyframe up to the newest of ``ids`` (`foldable` gives them in order): their current
+        contributions move to the frozen sums of their versions (the fused map does not change) and their data
+        leaves memory; a folded ready keyframe stays as a ghost (depth and pose) while it is among the
+        `consistency.neighbours` newest folded ones. Raises ValueError while a refresh is due."""
+        if not ids:
+            return
+        if self._dirty or self._recheck:
+            raise ValueError("refresh before folding: folded contributions must be up to date")
+        upto = max(ids)
+        for kf_id in [k for k in self.live if k <= upto]:
+            entry = self._contrib.pop(kf_id, None)
+            if entry is not None:
+                contribution, version = entry
+                self._frozen.setdefault(version if contribution.codes is not None else None,
+                                        FrozenSums()).add(contribution)
+            content = self.contents.pop(kf_id, None)
+            if content is not None:
+                self.folded_count += 1
+                self.folded_without_codes += entry is None or entry[0].codes is None
+            for table in (self._carved, self._views, self._unit_codes):
+                table.pop(kf_id, None)
+        self.folded_upto = max(self.folded_upto, upto)
+        self._compact_frozen()
+        ready_end = bisect_right(self._ready, self.folded_upto)
+        ghosts = set(self._ready[max(0, ready_end - self.params.consistency.neighbours) : ready_end])
+        del self._ready[: ready_end - len(ghosts)]
+        for table in (self.contents, self.depths, self.poses, self._unit_codes, self._views, self._carved):
+            for kf_id in [k for k in table if k <= self.folded_upto and k not in ghosts]:
+                del table[kf_id]
+
+    def _compact_frozen(self) -> None:
+        """Beyond `frozen_versions` versions of frozen sums, convert the oldest into the current version (the grid
+        holds them mapped the same way, so the fused map does not change)."""
+        versions = sorted(v for v in self._frozen if v is not None and v != self.code_version)
+        if self.code_version is None:
+            return
+        while len(versions) + (self.code_version in self._frozen) > self.frozen_versions and versions:
+            old = versions.pop(0)
+            part = self._frozen.pop(old).contribution()
+            codes = convert_sums(part.codes, part.weight, self._code_maps[old]).astype(np.float32)
+            self._frozen.setdefault(self.code_version, FrozenSums()).add(dataclasses.replace(part, codes=codes))
+            log.info("frozen sums of PCA version %d carried in version %d", old, self.code_version)
+
+    @property
+    def frozen_voxels(self) -> int:
+        """Voxel rows held by the frozen sums (all versions)."""
+        return sum(len(f) for f in self._frozen.values())
