@@ -292,8 +292,11 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
                 eos, msg = (msg, time.monotonic() + cfg.eos_wait_s), None
             if msg is not None:
                 state.keyframe_backlog = mapping.count(Keyframe)
+                began = time.monotonic()
                 for key, out in handle(state, msg, cfg):
                     bus.publish(key, out)
+                if isinstance(msg, Keyframe) and cfg.mapping_min_seconds > 0:
+                    stop.wait(max(0.0, began + cfg.mapping_min_seconds - time.monotonic()))
                 if isinstance(msg, Keyframe):
                     next_progress = 0.0
                     ref = state.frontend.reference()

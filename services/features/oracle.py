@@ -13,6 +13,7 @@ with :meth:`SynthOracleBackbone.set_frame` before handing the frame to the pipel
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,6 +42,8 @@ class OracleParams:
     """Per-pixel noise norm relative to the unit label vector (0 = exact label vectors)."""
     patch_size: int = 8
     """Pixels per output cell of the working image: 8 makes the patch grid the 1/8 grid itself."""
+    seconds: float = 0.0
+    """Time each call takes at least, like a real backbone on a slow CPU (tests of semantics falling behind)."""
     output_space: str = "oracle"
     """Embedding-space id written into the PCA basis (the gateway's ``KMVIPE_QUERY_ORACLE_SPACE``)."""
 
@@ -81,6 +84,8 @@ class SynthOracleBackbone:
             raise ValueError(f"backbone input must be (B, 3, H, W), got {tuple(images.shape)}")
         if self._seq is None:
             raise RuntimeError("the synthetic oracle was not told which frame it is looking at (set_frame)")
+        if self.params.seconds > 0:
+            time.sleep(self.params.seconds)
         h, w = images.shape[2] // self.patch_size, images.shape[3] // self.patch_size
         cell_labels = sample_patch_labels(self.labels(self._seq), h, w)
         rng = np.random.default_rng([self.params.seed, self._seq, h, w])

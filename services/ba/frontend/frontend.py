@@ -147,6 +147,15 @@ class Frontend:
             self.frames.add(record)
             return Update()
         self.frames.add(record)
+        if not self.initialised and self._static_for_long():
+            self._force_initialise()  # a camera that has not moved for this long: a static map, now
+        waiting = [s for s, f in self.frames.frames.items() if f.anchor is None]
+        if self.initialised and len(waiting) > self.params.init.max_pending_frames:
+            # no keyframe for this long (a fixed camera): frames are aligned to the last keyframe alone rather
+            # than held for one that may never come
+            for seq in waiting:
+                self.frames.align(self.graph, seq)
+            return Update(poses=self._pose_update(waiting))
         if not self.initialised or frame.seq > self.graph.seqs[-1]:
             return Update()  # aligned once the keyframe after it exists
         self.frames.align(self.graph, frame.seq)
@@ -292,7 +301,9 @@ class Frontend:
         self.initialised = True
         self.graph.predict_flow = p.predict_flow
         self.metric = p.ba.alpha_disp > 0 and any(pr is not None for pr in self.graph.priors)
-        return self._update(list(range(len(self.graph))))
+        update = self._update(list(range(len(self.graph))))
+        self._retire()
+        return update
 
     def _slide_init_window(self) -> None:
         """A two-view start that fails although the first and newest keyframe have parallax will not succeed
@@ -305,6 +316,13 @@ class Frontend:
         logger.info("two-view start failed with parallax; oldest keyframe turned into a frame", extra={"seq": seq})
         self.frames.add(FrameRecord(seq, g.stamps[0], g.images[0]))
         g.remove(0)
+
+    def _static_for_long(self) -> bool:
+        """More than ``max_pending_frames`` frames wait for a map and the keyframes have no parallax: a fixed
+        camera. Waiting for the end of stream would hold every frame (memory) and leave them all without a pose."""
+        g = self.graph
+        return (g is not None and len(self.frames.frames) > self.params.init.max_pending_frames
+                and (len(g) < 2 or init.parallax(g) < self.params.init.min_flow))
 
     def _force_initialise(self) -> bool:
         """Start the map with what there is at end of stream; True when there was no parallax at all."""

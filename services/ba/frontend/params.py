@@ -24,6 +24,7 @@ class InitParams:
 
     min_keyframes: int = 4  # keyframes collected before the first attempt
     max_keyframes: int = 6  # after a failed attempt with parallax, keyframes beyond this many slide out (oldest)
+    max_pending_frames: int = 100  # frames waiting for a map without parallax beyond this: a static map starts
     min_flow: float = 2.0  # mean grid flow (grid px) between the first and the newest keyframe
     min_inliers: int = 50  # essential-matrix inliers required
     ransac_px: float = 1.0  # RANSAC threshold of the essential matrix, working-resolution pixels
