@@ -1,4 +1,4 @@
-"""BA over real Zenoh: basis v2 never comes on the ``pca`` topic, yet the keyframe coded with it gets codes in the
+"""BA over real Zenoh: basis v2 never comes on the ``pca`` topic, yet the keyframe whose codes use it gets codes in the
 graph, because ba fetched v2 from the real features ``pca`` queryable. Every code in the graph is then the exact
 conversion (services/common/pca_codes.py) of what its keyframe carried into the newest version.
 
@@ -17,7 +17,7 @@ from services.common import keys
 from services.common.bus import Bus
 from services.common.config import BusSettings
 from services.common.pca_codes import code_map, convert_codes
-from services.common.schema import Keyframe, PcaBasis
+from services.common.schema import Keyframe, KeyframeCodes, PcaBasis
 from tests.conftest import wait_until
 from tests.test_pca_fetch_features import features_run, serve
 
@@ -27,14 +27,21 @@ ACK_S = 30.0
 
 
 def settings() -> BaSettings:
+    # every keyframe stays in the graph (no sliding two-view window), so the one coded with the missed basis does
     return BaSettings(stream=STREAM, device="cpu", threads=1, init_min_flow=0.5, focal_after=3, iterations=2,
-                      global_iterations=3)
+                      global_iterations=3, init_max_keyframes=100)
+
+
+def _has_native_codes(state, seq: int) -> bool:
+    g = state.frontend.graph
+    return g is not None and seq in g.seqs and g.native_codes[g.index(seq)] is not None
 
 
 def test_a_keyframe_whose_basis_never_came_gets_codes_from_the_basis_fetched_from_features(unix_endpoint):
     run = features_run(STREAM)
-    msgs = [m for m in run.outputs if isinstance(m, Keyframe) or (isinstance(m, PcaBasis) and m.version != MISSED)]
-    missed_seq = next(m.seq for m in msgs if isinstance(m, Keyframe) and m.pca_version == MISSED)
+    msgs = [m for m in run.outputs
+            if isinstance(m, (Keyframe, KeyframeCodes)) or (isinstance(m, PcaBasis) and m.version != MISSED)]
+    missed_seq = next(m.seq for m in msgs if isinstance(m, KeyframeCodes) and m.pca_version == MISSED)
     cfg = settings()
     state = ba.build_state(cfg)
     stop = threading.Event()
@@ -51,6 +58,8 @@ def test_a_keyframe_whose_basis_never_came_gets_codes_from_the_basis_fetched_fro
             if isinstance(msg, Keyframe):
                 seen += 1
                 wait_until(lambda: state.keyframes_seen >= seen, ACK_S, f"ba to take keyframe {msg.seq}")
+            elif isinstance(msg, KeyframeCodes):
+                wait_until(lambda: _has_native_codes(state, msg.seq), ACK_S, f"ba to take the codes of {msg.seq}")
             else:
                 wait_until(lambda: msg.version in state.bases, ACK_S, f"ba to take basis {msg.version}")
         wait_until(lambda: MISSED in state.bases, ACK_S, "ba to fetch the missed basis")

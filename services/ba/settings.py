@@ -38,6 +38,8 @@ class BaSettings(BASettings):
     """Freeze the focal length after this many keyframes."""
     init_keyframes: int = InitParams.min_keyframes
     """Keyframes collected before the two-view start is tried."""
+    init_max_keyframes: int = InitParams.max_keyframes
+    """After a failed two-view start with parallax, keyframes beyond this many slide out (oldest first)."""
     init_min_flow: float = InitParams.min_flow
     """Mean grid flow (grid px) between the first and newest keyframe needed to start."""
     proximity_max_flow: float = GraphParams.proximity_max_flow
@@ -87,7 +89,8 @@ class BaSettings(BASettings):
                             proximity_max_flow=self.proximity_max_flow, proximity_max_edges=self.proximity_max_edges,
                             remove_max_flow=self.remove_max_flow, global_radius=self.global_radius)
         return FrontendParams(
-            graph=graph, init=InitParams(min_keyframes=self.init_keyframes, min_flow=self.init_min_flow),
+            graph=graph, init=InitParams(min_keyframes=self.init_keyframes, min_flow=self.init_min_flow,
+                                         max_keyframes=self.init_max_keyframes),
             motion=MotionParams(huber=self.motion_huber), ba=self.ba_params(),
             global_ba=self.ba_params(global_ba=True), flow=self.flow_params(), focal_after=self.focal_after,
             focal_until=self.focal_until, keep_keyframes=self.keep_keyframes)
