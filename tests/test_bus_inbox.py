@@ -55,3 +55,11 @@ def test_realtime_inbox_never_drops_keyframes_codes_or_eos():
 
 def test_get_times_out_on_an_empty_inbox():
     assert Inbox(2).get(0.01) is None
+
+
+def test_the_inbox_tells_of_every_frame_it_drops():
+    told = []
+    box = Inbox(2, lossless=False, droppable=(FrameLite,), on_drop=lambda d: told.append(d.msg.seq))
+    for seq in range(5):
+        box.put(_lite(seq))
+    assert told == [0, 1, 2] and _drain(box) == [3, 4]

@@ -9,6 +9,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import deque
 
 import numpy as np
 import torch
@@ -40,6 +41,8 @@ class TrackingLoop:
         # frame there instead of aligning it again, and starts a keyframe from it (dict operations are atomic;
         # mapping pops what it uses, reset clears the rest)
         self.anchors = anchors
+        self._skipped: deque[FrameLite | Keyframe] = deque()  # frames the inbox dropped: predicted poses only
+        inbox.on_drop = lambda delivery: self._skipped.append(delivery.msg)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="tracking", daemon=True)
 
@@ -72,6 +75,8 @@ class TrackingLoop:
                 ref, self._pending_ref = self._pending_ref, None
             if ref is not None:
                 self.tracker.set_reference(ref)
+            while self._skipped:  # frames tracking had no time for still get a pose now, by prediction
+                self._predicted(self._skipped.popleft())
             if delivery is None or isinstance(delivery.msg, Eos):
                 continue
             try:
@@ -79,6 +84,17 @@ class TrackingLoop:
             except (ValueError, RuntimeError) as exc:  # one bad frame never stops tracking
                 log.warning("frame not tracked", extra={"stream": self.stream, "seq": delivery.msg.seq,
                                                         "error": str(exc)})
+
+    def _predicted(self, msg: FrameLite | Keyframe) -> None:
+        if self.tracker.reference is None:
+            return
+        self._publish(msg, self.tracker.predict(msg.t_ns))
+
+    def _publish(self, msg: FrameLite | Keyframe, pose: torch.Tensor) -> None:
+        self.bus.publish(keys.topic(self.stream, keys.POSE), Poses(
+            self.stream, msg.seq, time.time_ns(), frame_seqs=np.array([msg.seq], np.int64),
+            stamps_ns=np.array([msg.t_ns], np.int64), poses=pose.detach().cpu().numpy().astype(np.float64)[None],
+            tracked=True))
 
     def _track(self, msg: FrameLite | Keyframe) -> None:
         self.last_seq = max(self.last_seq, msg.seq)
@@ -90,9 +106,6 @@ class TrackingLoop:
             self.anchors[msg.seq] = (out.ref_seq, se3.inverse(self.tracker.reference.pose) @ out.pose, out.pose)
             if isinstance(msg, Keyframe):  # tracking moves on to it now, whether or not mapping keeps up
                 self.tracker.promote(msg.seq, msg.t_ns, to_grey(msg.image), out.pose)
-        pose = out.pose.detach().cpu().numpy().astype(np.float64)[None]
-        self.bus.publish(keys.topic(self.stream, keys.POSE), Poses(
-            self.stream, msg.seq, time.time_ns(), frame_seqs=np.array([msg.seq], np.int64),
-            stamps_ns=np.array([msg.t_ns], np.int64), poses=pose, tracked=True))
+        self._publish(msg, out.pose)
         if not out.ok:
             log.info("frame kept its predicted pose (weak flow)", extra={"stream": self.stream, "seq": msg.seq})

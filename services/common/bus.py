@@ -83,11 +83,13 @@ class Inbox:
     ``lossless``: never drops; credit keeps it below ``maxsize``, and should it fill anyway it grows (counted in
     ``overflowed``) rather than lose what upstream was promised. Real-time: when full, the oldest queued message
     of a ``droppable`` kind (frames, never keyframes, codes, bases or EOS) makes room; if none is queued, an
-    incoming droppable message is dropped and an essential one is still queued. Drops are counted per kind.
+    incoming droppable message is dropped and an essential one is still queued. Drops are counted per kind, and
+    ``on_drop`` (if given) is told of each.
     """
 
-    def __init__(self, maxsize: int, lossless: bool = False, droppable: tuple[type, ...] = ()):
-        self.maxsize, self.lossless, self.droppable = maxsize, lossless, droppable
+    def __init__(self, maxsize: int, lossless: bool = False, droppable: tuple[type, ...] = (),
+                 on_drop: Callable[[Delivery], None] | None = None):
+        self.maxsize, self.lossless, self.droppable, self.on_drop = maxsize, lossless, droppable, on_drop
         self._items: deque[Delivery] = deque()
         self._ready = threading.Condition()
         self.dropped_by_kind: Counter[str] = Counter()
@@ -123,6 +125,8 @@ class Inbox:
             return None
         self.dropped_by_kind[victim.msg.KIND] += 1
         log.info("inbox full: dropped the oldest frame", extra={"key": victim.key, "seq": victim.msg.seq})
+        if self.on_drop is not None:  # called with the inbox locked: it must only take note
+            self.on_drop(victim)
         return victim
 
     def get(self, timeout: float) -> Delivery | None:
