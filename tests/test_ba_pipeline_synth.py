@@ -40,6 +40,13 @@ def synth_stream(n_frames: int, rendered: int, every: int, stream: str = "t0", w
     return world, msgs
 
 
+def feed(fe: Frontend, msg: Keyframe | FrameLite):
+    """One message of :func:`synth_stream` into the frontend; its Update."""
+    if isinstance(msg, Keyframe):
+        return fe.add_keyframe(KeyframeInput(msg.seq, msg.t_ns, msg.image, msg.intrinsics, msg.codes))
+    return fe.add_frame(FrameInput(msg.seq, msg.t_ns, msg.image))
+
+
 def ate_of(world, seqs, poses) -> tuple[float, float]:
     """(ATE RMSE after Sim(3) alignment, path length) over frames ``seqs``."""
     seqs = np.asarray(seqs)
@@ -55,10 +62,7 @@ def test_orbit_trajectory_every_frame_posed_and_accurate():
     fe = Frontend()
     latest: dict[int, np.ndarray] = {}
     for msg in msgs[:-1]:
-        if isinstance(msg, Keyframe):
-            up = fe.add_keyframe(KeyframeInput(msg.seq, msg.t_ns, msg.image, msg.intrinsics, msg.codes))
-        else:
-            up = fe.add_frame(FrameInput(msg.seq, msg.t_ns, msg.image))
+        up = feed(fe, msg)
         if up.poses is not None:
             latest.update(zip(up.poses.frame_seqs.tolist(), up.poses.poses))
     assert fe.initialised

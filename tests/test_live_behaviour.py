@@ -16,8 +16,7 @@ import pytest
 
 from services.ba.frontend.frontend import FrameInput, Frontend, KeyframeInput
 from services.ba.frontend.params import FrontendParams
-from services.common.schema import Keyframe
-from tests.test_ba_pipeline_synth import synth_stream
+from tests.test_ba_pipeline_synth import feed, synth_stream
 
 KMVIPE = Path(sys.executable).with_name("kmvipe")
 SPEC = "synth:frames=40,width=256,height=192"
@@ -61,10 +60,7 @@ def test_ba_memory_is_bounded_by_its_keyframes_not_by_the_stream():
     most_frames = 0
     for msg in msgs[:-1]:
         was_mapping = fe.initialised  # the keyframes gathered for the two-view start all join the map at once
-        if isinstance(msg, Keyframe):
-            up = fe.add_keyframe(KeyframeInput(msg.seq, msg.t_ns, msg.image, msg.intrinsics, msg.codes))
-        else:
-            up = fe.add_frame(FrameInput(msg.seq, msg.t_ns, msg.image))
+        up = feed(fe, msg)
         if up.poses is not None:
             posed.update(zip(up.poses.frame_seqs.tolist(), up.poses.poses))
         if was_mapping:
