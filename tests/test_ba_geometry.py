@@ -130,6 +130,20 @@ def test_reprojection_jacobians_match_autograd():
     _assert_rel_close(out.j_focal, jac[3])
 
 
+def test_focal_jacobian_holds_the_aspect_of_a_non_square_resize():
+    """The working resize scales x and y differently (KITTI: 1.6 %): fx is the variable, fy = a fx follows."""
+    pose_i, pose_j, disp, pixels, intr = _scene()
+    aspect = 1.016
+    intr = torch.stack([intr[0], intr[0] * aspect, intr[2], intr[3]])
+    out = projective.reproject(pose_i, pose_j, disp, pixels, intr)
+
+    def coords(fx):
+        k = torch.stack([fx, fx * aspect, intr[2], intr[3]])
+        return projective.reproject(pose_i, pose_j, disp, pixels, k, with_jacobians=False).coords
+
+    _assert_rel_close(out.j_focal, torch.func.jacfwd(coords)(intr[0]))
+
+
 def test_reprojection_marks_points_behind_camera_invalid():
     eye = torch.eye(4, dtype=torch_dtype)[None]
     behind = eye.clone()

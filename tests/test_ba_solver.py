@@ -72,6 +72,23 @@ def test_focal_length_is_recovered_from_a_30_percent_error():
     assert t_err < 1e-3 and r_err < 0.05, (t_err, r_err)
 
 
+def test_focal_bounds_constrain_the_focal_and_keep_the_result():
+    """A focal bound holds fx (and fy with it) instead of the result being thrown away; inside the bounds the
+    truth is still found."""
+    win = synthetic.make_window(n=6, h=24, w=32, seed=2)
+    truth = float(win.truth.intrinsics[0])
+    params = BAParams(iterations=25, optimise_focal=True, robust=L2, compute_dtype=EXACT)
+    held = ba.run_ba(_start(win, seed=3, focal_factor=0.7), win.problem._replace(focal_bounds=(0.5 * truth, 0.8 * truth)),
+                     params)
+    fx, fy = (float(v) for v in held.state.intrinsics[:2])
+    assert fx == pytest.approx(0.8 * truth) and fy / fx == pytest.approx(1.0)
+    assert all(bool(torch.isfinite(t).all()) for t in held.state)
+    assert held.costs[-1] < held.costs[0]
+    free = ba.run_ba(_start(win, seed=3, focal_factor=0.7), win.problem._replace(focal_bounds=(0.5 * truth, 1.2 * truth)),
+                     params)
+    assert float(free.state.intrinsics[0]) == pytest.approx(truth, rel=1e-6)
+
+
 def test_disparity_prior_fixes_metric_scale():
     win = synthetic.make_window(n=4, h=12, w=16, seed=4)
     problem = win.problem._replace(disp_prior=win.truth.disparity, prior_mask=torch.ones_like(win.truth.disparity))

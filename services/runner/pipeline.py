@@ -344,12 +344,26 @@ def _follow(observer: _Observer, monitor: ResourceMonitor, started: list[kids.Ch
                 return f"error: service '{dead[0].name}' died (exit {dead[0].process.returncode}); see {dead[0].log_path}"
             if idle > cfg.stall_timeout_s:
                 return f"stalled: nothing on the bus for {idle:.0f} s"
+        _settle(observer)
         return observer.eos[observer.last_stage].reason
     finally:
         monitor.sample()  # CPU up to the end of the stream, before anything is stopped
         monitor.record(observer.frames)
         bar.update(observer.frames - bar.n)
         bar.close()
+
+
+def _settle(observer: _Observer, grace_s: float = 2.0) -> None:
+    """Zenoh delivers different keys on different threads: the last stage's EOS can be handled while the last
+    frames' callbacks are still running. Wait (briefly) until the runner has counted every frame ingest says it
+    published, so the summary does not under-count."""
+    deadline = time.monotonic() + grace_s
+    while time.monotonic() < deadline:
+        with observer.lock:
+            ingest_eos = observer.eos.get("ingest")
+            if ingest_eos is None or observer.frames >= ingest_eos.count:
+                return
+        time.sleep(0.02)
 
 
 def _serve_until_stopped(started: list[kids.Child], port: int, stop: StopSignals) -> None:

@@ -41,6 +41,8 @@ class BAProblem(NamedTuple):
     codes: torch.Tensor | None = None  # (N, h, w, K) feature codes (ARK and embedding term); float32 is fastest
     disp_prior: torch.Tensor | None = None  # (N, h, w) prior disparity
     prior_mask: torch.Tensor | None = None  # (N, h, w) 1 where disp_prior is valid
+    focal_bounds: tuple[float, float] | None = None  # fx stays inside (grid px): each step is projected onto it,
+    # so a focal pushed against a bound still lets poses and depth converge (a result is never thrown away for it)
 
 
 class BAState(NamedTuple):
@@ -48,7 +50,7 @@ class BAState(NamedTuple):
 
     poses: torch.Tensor
     disparity: torch.Tensor
-    intrinsics: torch.Tensor  # (fx, fy, cx, cy) of the grid; fx = fy = f is optimised when asked
+    intrinsics: torch.Tensor  # (fx, fy, cx, cy) of the grid; fx is optimised when asked, fy keeps fy/fx
 
 
 class BAResult(NamedTuple):
@@ -202,11 +204,15 @@ def _normal_equations(res: _Residuals, params: BAParams, frozen: _Frozen) -> sch
     return schur.NormalEquations(j_cam, j_disp, resid, weight)
 
 
-def _apply(state: BAState, step: schur.Step, params: BAParams) -> BAState:
+def _apply(state: BAState, step: schur.Step, params: BAParams,
+           focal_bounds: tuple[float, float] | None = None) -> BAState:
     poses = se3.retract(state.poses, step.poses)
     disp = (state.disparity + step.disparity.view_as(state.disparity)).clamp_min(params.min_disparity)
     intr = state.intrinsics.clone()
-    intr[:2] = intr[:2] + step.focal
+    fx = intr[0] + step.focal
+    if focal_bounds is not None:
+        fx = fx.clamp(*focal_bounds)
+    intr[:2] = intr[:2] * (fx / intr[0])  # the step is in fx; fy keeps the aspect fy/fx
     return BAState(poses, disp, intr)
 
 
@@ -249,7 +255,7 @@ def run_ba(state: BAState, problem: BAProblem, params: BAParams) -> BAResult:
         prior_h, prior_g, _ = _prior_terms(state, problem, params)
         step = schur.solve(_normal_equations(res, params, frozen), prep.ii, prep.jj, n, free, lm,
                            params.pose_eps, params.disp_eps, prior_h, prior_g)
-        trial = _apply(state, step, params)
+        trial = _apply(state, step, params, problem.focal_bounds)
         if scale_anchor:
             trial = _rescale(trial, 0, 1, distance)
         trial_cost = _cost(trial, prep, problem, params, frozen)

@@ -28,7 +28,7 @@ class BAParams:
     lambda_embed: float = 0.0  # weight of the embedding residual r = 1 - cs (0 disables it)
     embed_form: str = "angular"  # "angular": r = 1 - cs; "chordal": r = sqrt(2 (1 - cs))
     alpha_disp: float = 0.0  # weight of the disparity prior (d - d_prior)^2 where a prior is given
-    optimise_focal: bool = False  # refine the shared focal length f = fx = fy
+    optimise_focal: bool = False  # refine the focal length fx (fy keeps its ratio to fx)
     fixed_poses: int = 1  # number of oldest window poses held fixed (gauge); >= 1
     fix_scale: bool = True  # without a prior: rescale after each step so |c_1 - c_0| keeps its start value
     lm_init: float = 1e-4  # initial Levenberg-Marquardt damping (relative to the diagonal)

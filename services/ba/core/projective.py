@@ -9,7 +9,8 @@ Jacobians (all analytic, checked against ``torch.func.jacfwd`` in tests) are wit
 * the left tangent ``xi_i``/``xi_j`` of ``T_i``/``T_j`` (see :mod:`services.ba.core.se3`: ``T <- exp(xi) T``,
   ``xi = (rho, phi)``). With this convention ``J_pose_j = -J_pose_i`` exactly;
 * the disparity ``d`` of the source pixel;
-* a **shared focal length** ``f`` with ``fx = fy = f`` (square pixels; the principal point is held fixed).
+* the **focal length** ``fx``, with the aspect ``fy / fx`` held (the working resize may scale x and y a little
+  differently; the principal point is held fixed).
 
 Coordinates are pixels of whatever image the intrinsics belong to (in BA: the 1/8 grid, see
 docs/CONVENTIONS.md).
@@ -45,7 +46,7 @@ class Reprojection(NamedTuple):
 
     @property
     def j_focal(self) -> torch.Tensor:
-        """``(E, P, 2)`` d coords / d f (fx = fy = f)."""
+        """``(E, P, 2)`` d coords / d fx (fy / fx held)."""
         return self.j_pose_focal[..., 6]
 
 
@@ -93,7 +94,9 @@ def reproject(world_from_cam_i: torch.Tensor, world_from_cam_j: torch.Tensor, di
         world_from_cam_j: ``(E, 4, 4)`` target poses.
         disparity: ``(E, P)`` source disparities (inverse depth); the per-pixel work runs in its dtype.
         pixels: ``(P, 2)`` source pixel coordinates ``(x, y)``.
-        intrinsics: ``(4,)`` ``(fx, fy, cx, cy)``; the focal Jacobian assumes ``fx = fy = f``.
+        intrinsics: ``(4,)`` ``(fx, fy, cx, cy)``; the focal Jacobian is with respect to ``fx`` with the aspect
+            ``fy / fx`` held (a resize to the working size scales x and y differently; one focal for both biased
+            KITTI's by +2.3 %).
         with_jacobians: also return the analytic Jacobians.
     Returns:
         :class:`Reprojection` (Jacobian fields ``None`` when ``with_jacobians`` is false); the tensors are
@@ -158,8 +161,9 @@ def reproject_planes(world_from_cam_i: torch.Tensor, world_from_cam_j: torch.Ten
     jac[:, 4] = p_w[:, 2] * a[:, 0] - p_w[:, 0] * a[:, 2]
     jac[:, 5] = p_w[:, 0] * a[:, 1] - p_w[:, 1] * a[:, 0]
     j_disp = (a * baseline.to(dtype)[:, :, None, None]).sum(1)  # (E, 2, P)
-    # f enters through q = ((x - cx)/f, (y - cy)/f, 1): d x_j / d f = -(R_ji q - R_ji e_z) / f
+    # fx enters through q = ((x - cx)/fx, (y - cy)/(a fx), 1) with the aspect a = fy/fx held:
+    # d x_j / d fx = -(R_ji q - R_ji e_z) / fx, and the projection's fy = a fx scales with it
     dx_df = (rot_ji[:, :, 2:3] - rq) / fx  # (E, 3, P)
     jac[:, 6, 0] = u_n + gx[:, 0] * (dx_df[:, 0] - u_n * dx_df[:, 2])
-    jac[:, 6, 1] = v_n + gy[:, 0] * (dx_df[:, 1] - v_n * dx_df[:, 2])
+    jac[:, 6, 1] = (fy / fx) * v_n + gy[:, 0] * (dx_df[:, 1] - v_n * dx_df[:, 2])
     return PlaneReprojection(coords, valid, jac, j_disp)

@@ -50,10 +50,10 @@ class KeyframeGraph:
     """
 
     def __init__(self, grid_intrinsics: torch.Tensor, grid_hw: tuple[int, int], flow: FlowParams,
-                 device: torch.device, focal_range: tuple[float, float] = (0.5, 2.0), max_step_growth: float = 4.0):
+                 device: torch.device, focal_range: tuple[float, float] = (0.36, 1.75), max_step_growth: float = 4.0):
         self.intrinsics = grid_intrinsics.to(device, torch.float64)  # (4,) fx, fy, cx, cy of the grid
         self.first_focal = float(grid_intrinsics[0])
-        self.focal_range = focal_range  # BA results whose focal leaves this range of the first guess are refused
+        self.focal_range = focal_range  # BA keeps the focal inside this range of the first guess
         self.grid_hw = grid_hw
         self.flow_params = flow
         self.device = device
@@ -159,12 +159,13 @@ class KeyframeGraph:
             mask = (prior > 0).to(torch.float64)
         start = self.stacked(window)
         try:
-            result = run_ba(start, BAProblem(ii, jj, targets, conf, codes, prior, mask), params)
+            bounds = (self.focal_range[0] * self.first_focal, self.focal_range[1] * self.first_focal)
+            result = run_ba(start, BAProblem(ii, jj, targets, conf, codes, prior, mask, bounds), params)
         except (RuntimeError, IndexError) as exc:  # a degenerate window (singular or non-finite): keep its state
             logger.warning("BA failed; window state kept", extra={"keyframes": len(window), "error": str(exc)})
             return None
         if not self._plausible(start, result.state):
-            logger.warning("BA result rejected (non-finite or focal out of range); window state kept",
+            logger.warning("BA result rejected (non-finite or a keyframe step jumped); window state kept",
                            extra={"keyframes": len(window), "focal": float(result.state.intrinsics[0])})
             return None
         self._store(window, result, ii, conf)
@@ -172,8 +173,7 @@ class KeyframeGraph:
 
     def _plausible(self, start: BAState, state: BAState) -> bool:
         finite = all(bool(torch.isfinite(t).all()) for t in (state.poses, state.disparity, state.intrinsics))
-        ratio = float(state.intrinsics[0] / self.first_focal)
-        return finite and self.focal_range[0] <= ratio <= self.focal_range[1] and not self._jumped(start, state)
+        return finite and not self._jumped(start, state)
 
     def _jumped(self, start: BAState, state: BAState) -> bool:
         """A keyframe whose flow constrains nothing (all edges lost) can fly off along the free direction of its
