@@ -60,6 +60,30 @@ def test_two_view_start_finds_the_motion_direction_and_depth_ratios():
     assert np.std(ratio[seen]) / np.mean(ratio[seen]) < 1e-3
 
 
+def test_a_planar_scene_gets_the_true_motion_among_the_homography_candidates():
+    """A wall or a desk leaves the essential matrix degenerate; the homography's decompositions include the true
+    motion, and the start then chooses among them by BA cost."""
+    from services.ba.core import projective
+    h, w, f = 24, 32, 28.0
+    intr = torch.tensor([f, f, (w - 1) / 2, (h - 1) / 2], dtype=torch.float64)
+    pixels = projective.pixel_grid(h, w)
+    rays = torch.stack([(pixels[:, 0] - intr[2]) / f, (pixels[:, 1] - intr[3]) / f, torch.ones(h * w)], -1)
+    normal = torch.tensor([0.2, -0.1, 1.0], dtype=torch.float64)
+    disparity = (rays @ normal / (2.0 * normal.norm()))[None]  # a tilted wall 2 m ahead: 1/z = n.r / d
+    second = torch.eye(4, dtype=torch.float64)
+    second[:3, :3] = se3.so3_exp(torch.tensor([0.0, math.radians(3.0), math.radians(1.0)], dtype=torch.float64))
+    second[:3, 3] = torch.tensor([0.3, 0.05, 0.1])
+    coords = projective.reproject(torch.eye(4, dtype=torch.float64)[None], second[None], disparity, pixels, intr,
+                                  with_jacobians=False).coords.view(h, w, 2).numpy()
+    views, inliers = init.homography_views(coords, np.ones((h, w)), working_intrinsics(intr),
+                                           InitParams(min_inliers=20))
+    assert inliers == h * w and 1 <= len(views) <= 2
+    direction = (second[:3, 3] / second[:3, 3].norm()).numpy()
+    best = max(views, key=lambda v: float(direction @ v.first_from_second[:3, 3]))
+    assert float(direction @ best.first_from_second[:3, 3]) > 0.999 and best.model == "homography"
+    assert _rot_deg(torch.from_numpy(best.first_from_second), second) < 0.05
+
+
 def test_temporal_and_proximity_edges():
     assert set(edges.temporal_pairs([3, 4, 5], 1)) == {(4, 3), (3, 4), (5, 4), (4, 5)}
     params = GraphParams(proximity_max_flow=5.0, proximity_max_edges=2, proximity_nms=1)

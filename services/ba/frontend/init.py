@@ -23,16 +23,29 @@ class TwoView(NamedTuple):
 
     first_from_second: np.ndarray  # (4, 4) float64 pose of camera 2 in camera 1's frame, |t| = 1
     disparity: np.ndarray  # (h, w) float64 disparity of camera 1's grid pixels (median where unknown)
-    inliers: int  # essential-matrix inliers
+    inliers: int  # inliers of the model it came from
+    model: str = "essential"  # "essential" | "homography"
 
 
 def _to_working(grid_xy: np.ndarray) -> np.ndarray:
     return (grid_xy + 0.5) * 8.0 - 0.5
 
 
+def _correspondences(targets: np.ndarray, confidence: np.ndarray, params: InitParams):
+    h, w = confidence.shape
+    if targets.shape != (h, w, 2):
+        raise ValueError(f"targets ({h},{w},2) expected, got {targets.shape}")
+    rows, cols = np.mgrid[0:h, 0:w]
+    src = _to_working(np.stack([cols, rows], -1).reshape(-1, 2).astype(np.float64))
+    dst = _to_working(targets.reshape(-1, 2).astype(np.float64))
+    keep = confidence.reshape(-1) >= params.min_confidence
+    return src, dst, keep
+
+
 def two_view(targets: np.ndarray, confidence: np.ndarray, intrinsics_work: np.ndarray,
              params: InitParams) -> TwoView | None:
-    """Relative pose of two keyframes from the grid flow ``targets`` of the first into the second.
+    """Relative pose of two keyframes from the grid flow ``targets`` of the first into the second (essential
+    matrix).
 
     Args:
         targets: ``(h, w, 2)`` grid coordinates in keyframe 2 of keyframe 1's grid pixels.
@@ -41,32 +54,67 @@ def two_view(targets: np.ndarray, confidence: np.ndarray, intrinsics_work: np.nd
     Returns:
         :class:`TwoView`, or None when the geometry is too weak (too few inliers or points behind).
     """
-    h, w = confidence.shape
-    if targets.shape != (h, w, 2):
-        raise ValueError(f"targets ({h},{w},2) expected, got {targets.shape}")
-    rows, cols = np.mgrid[0:h, 0:w]
-    src = _to_working(np.stack([cols, rows], -1).reshape(-1, 2).astype(np.float64))
-    dst = _to_working(targets.reshape(-1, 2).astype(np.float64))
-    keep = confidence.reshape(-1) >= params.min_confidence
+    src, dst, keep = _correspondences(targets, confidence, params)
     if keep.sum() < params.min_inliers:
         return None
-    fx, fy, cx, cy = intrinsics_work
-    cam = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], np.float64)
+    cam = _camera(intrinsics_work)
     ess, mask = cv2.findEssentialMat(src[keep], dst[keep], cam, cv2.RANSAC, 0.999, params.ransac_px)
     if ess is None or ess.shape != (3, 3):
         return None
     n_in, rot, trans, mask = cv2.recoverPose(ess, src[keep], dst[keep], cam, mask=mask)
     if n_in < params.min_inliers:
         return None
+    return _with_depth(rot, trans[:, 0], src, dst, keep, mask.reshape(-1) > 0, cam, confidence.shape, params,
+                       "essential")
+
+
+def homography_views(targets: np.ndarray, confidence: np.ndarray, intrinsics_work: np.ndarray,
+                     params: InitParams) -> tuple[list[TwoView], int]:
+    """The motions a plane-induced homography allows (those that keep its points in front of both cameras;
+    usually two), and the homography's inlier count. A scene that is mostly one plane (a wall, a desk) makes
+    the essential matrix degenerate: it then returns either twin of the planar solution, or neither
+    (TartanAir hospital, keyframes 0-4: 13 deg off, its homography twin 1.5 deg)."""
+    src, dst, keep = _correspondences(targets, confidence, params)
+    if keep.sum() < params.min_inliers:
+        return [], 0
+    hom, mask = cv2.findHomography(src[keep], dst[keep], cv2.RANSAC, params.ransac_px)
+    if hom is None or mask is None or int(mask.sum()) < params.min_inliers:
+        return [], 0
+    inlier = mask.reshape(-1) > 0
+    cam = _camera(intrinsics_work)
+    n, rots, trans, normals = cv2.decomposeHomographyMat(hom, cam)
+    # OpenCV's visibility test takes the points as camera rays (x, y, 1): normalised, not pixels
+    before, after = (cv2.undistortPoints(p[keep][inlier].reshape(-1, 1, 2), cam, None).astype(np.float32)
+                     for p in (src, dst))
+    visible = cv2.filterHomographyDecompByVisibleRefpoints(rots, normals, before, after)
+    views = []
+    for k in ([] if visible is None else visible.reshape(-1)):
+        t = trans[k][:, 0]
+        if np.linalg.norm(t) < 1e-9:  # a pure rotation: no depth from this pair
+            continue
+        view = _with_depth(rots[k], t / np.linalg.norm(t), src, dst, keep, inlier, cam, confidence.shape, params,
+                           "homography")
+        if view is not None:
+            views.append(view)
+    return views, int(inlier.sum())
+
+
+def _camera(intrinsics_work: np.ndarray) -> np.ndarray:
+    fx, fy, cx, cy = intrinsics_work
+    return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], np.float64)
+
+
+def _with_depth(rot: np.ndarray, trans: np.ndarray, src, dst, keep, inlier, cam, hw, params: InitParams,
+                model: str) -> TwoView | None:
     second_from_first = np.eye(4)
-    second_from_first[:3, :3], second_from_first[:3, 3] = rot, trans[:, 0]
+    second_from_first[:3, :3], second_from_first[:3, 3] = rot, trans
     depth = _triangulate(src[keep], dst[keep], cam, second_from_first)
-    good = (mask.reshape(-1) > 0) & (depth > 0) & np.isfinite(depth)
+    good = inlier & (depth > 0) & np.isfinite(depth)
     if good.sum() < params.min_inliers:
         return None
-    disparity = np.full(h * w, 1.0 / np.median(depth[good]))
+    disparity = np.full(hw[0] * hw[1], 1.0 / np.median(depth[good]))
     disparity[np.flatnonzero(keep)[good]] = 1.0 / depth[good]
-    return TwoView(np.linalg.inv(second_from_first), disparity.reshape(h, w), int(good.sum()))
+    return TwoView(np.linalg.inv(second_from_first), disparity.reshape(hw), int(good.sum()), model)
 
 
 def _triangulate(src: np.ndarray, dst: np.ndarray, cam: np.ndarray, second_from_first: np.ndarray) -> np.ndarray:
@@ -82,25 +130,57 @@ def _triangulate(src: np.ndarray, dst: np.ndarray, cam: np.ndarray, second_from_
 
 def start_map(graph: KeyframeGraph, params: InitParams, ba_params: BAParams, motion_params: MotionParams,
               force: bool = False) -> bool:
-    """Seed every keyframe of ``graph`` from a two-view
-    start between its first and newest keyframe, align the ones between motion-only, and run a BA.
+    """Seed every keyframe of ``graph`` from a two-view start between its first and newest keyframe, align the
+    ones between motion-only, and run a BA.
+
+    The two-view motion has candidates: the essential matrix's, and the homography's (a mostly planar scene
+    leaves the essential matrix degenerate). Each seeds the window and is adjusted; the lowest BA cost wins.
+    Two keyframes of a plane cannot tell a homography's twin motions apart, so a planar start waits for a third.
 
     Returns False (graph unchanged) when there is not yet enough parallax; ``force`` tries with what there is.
     """
     n = len(graph)
     if n < 2 or (n < params.min_keyframes and not force):
         return False
-    first, last = 0, n - 1
     flow = parallax(graph)
     if flow < params.min_flow and not force:
         return False
-    tg = graph.targets(first, last)
-    start = two_view(tg.target.numpy(), tg.confidence.numpy(), working_intrinsics(graph.intrinsics), params)
-    if start is None:
+    tg = graph.targets(0, n - 1)
+    candidates = _candidates(tg, working_intrinsics(graph.intrinsics), params, n, force)
+    if candidates is None:  # planar with two keyframes: wait for a third
+        return False
+    if not candidates:
         if not force:
             return False
         logger.warning("two-view start failed at end of stream; keyframes keep identity poses")
         return True
+    iterations = dataclasses.replace(ba_params, iterations=params.iterations)
+    best, costs = candidates[0], []
+    if len(candidates) > 1:
+        costs = [_seed_and_adjust(graph, c, iterations, motion_params) for c in candidates]
+        best = candidates[int(np.argmin(costs))]
+    _seed_and_adjust(graph, best, iterations, motion_params)
+    logger.info("map initialised", extra={"keyframes": n, "inliers": best.inliers, "model": best.model,
+                                          "flow": round(flow, 2), "candidate_costs": [round(c, 3) for c in costs]})
+    return True
+
+
+def _candidates(tg, intrinsics_work: np.ndarray, params: InitParams, n: int, force: bool) -> list[TwoView] | None:
+    """Two-view motions to try: the essential matrix's and the homography's; None when the scene is planar and
+    two keyframes cannot tell the homography's twin motions apart (wait for a third)."""
+    args = (tg.target.numpy(), tg.confidence.numpy(), intrinsics_work, params)
+    essential = two_view(*args)
+    planar, h_inliers = homography_views(*args)
+    e_inliers = essential.inliers if essential is not None else 0
+    if n < 3 and len(planar) > 1 and h_inliers >= params.planar_ratio * e_inliers and not force:
+        return None
+    return ([essential] if essential is not None else []) + planar
+
+
+def _seed_and_adjust(graph: KeyframeGraph, start: TwoView, ba_params: BAParams, motion_params: MotionParams) -> float:
+    """Every keyframe's pose and disparity from ``start``, then a BA over them; the final BA cost (inf when the
+    BA failed). Overwrites the graph's poses and disparities."""
+    n, first, last = len(graph), 0, len(graph) - 1
     dev, dtype = graph.device, torch.float64
     disp = torch.from_numpy(start.disparity).to(dev, dtype)
     prior = graph.priors[first]
@@ -123,9 +203,8 @@ def start_map(graph: KeyframeGraph, params: InitParams, ba_params: BAParams, mot
                            t.confidence[None].to(dev), graph.intrinsics, motion_params)
         graph.poses[k] = res.pose if res.ok else init
     everything = list(range(n))
-    graph.run(everything, temporal_pairs(everything, 2), dataclasses.replace(ba_params, iterations=params.iterations))
-    logger.info("map initialised", extra={"keyframes": n, "inliers": start.inliers, "flow": round(flow, 2)})
-    return True
+    result = graph.run(everything, temporal_pairs(everything, 2), ba_params)
+    return float("inf") if result is None else float(result.costs[-1])
 
 
 def parallax(graph: KeyframeGraph) -> float:

@@ -31,6 +31,8 @@ class InitParams:
     ransac_px: float = 1.0  # RANSAC threshold of the essential matrix, working-resolution pixels
     min_confidence: float = 0.5  # flow confidence a grid cell needs to enter the two-view estimate
     iterations: int = 15  # BA iterations over the initial keyframes
+    planar_ratio: float = 0.8  # homography inliers >= this x the essential matrix's: a (mostly) planar scene,
+    # whose two-view motion is two-fold ambiguous: the start waits for a third keyframe to choose
 
 
 @dataclass(frozen=True)
