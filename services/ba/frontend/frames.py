@@ -126,6 +126,11 @@ class FramePoses:
             del self.frames[s]
         return len(old)
 
+    def unanchor(self) -> None:
+        """The map started again (new scale and focal): every frame is aligned afresh (its flows are kept)."""
+        for f in self.frames.values():
+            f.anchor = f.anchor_from_cam = None
+
     def forget_targets(self, kf_seq: int) -> None:
         """A keyframe left the graph: targets from it are stale, and frames anchored to it are re-aligned."""
         for f in self.frames.values():

@@ -95,6 +95,16 @@ class KeyframeGraph:
         self.confidence.append(torch.zeros(h, w))
         return len(self.seqs) - 1
 
+    def snapshot(self) -> tuple:
+        """The estimated state (poses, disparities, weights, intrinsics), for :meth:`restore`."""
+        return ([p.clone() for p in self.poses], [d.clone() for d in self.disparity], list(self.static),
+                list(self.confidence), self.intrinsics.clone())
+
+    def restore(self, state: tuple) -> None:
+        poses, disparity, static, confidence, intrinsics = state
+        self.poses, self.disparity = [p.clone() for p in poses], [d.clone() for d in disparity]
+        self.static, self.confidence, self.intrinsics = list(static), list(confidence), intrinsics.clone()
+
     def remove(self, k: int) -> None:
         """Drop keyframe ``k`` with its proximity edges and cached targets."""
         seq = self.seqs[k]

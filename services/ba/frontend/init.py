@@ -129,7 +129,7 @@ def _triangulate(src: np.ndarray, dst: np.ndarray, cam: np.ndarray, second_from_
 
 
 def start_map(graph: KeyframeGraph, params: InitParams, ba_params: BAParams, motion_params: MotionParams,
-              force: bool = False) -> bool:
+              force: bool = False) -> float | None:
     """Seed every keyframe of ``graph`` from a two-view start between its first and newest keyframe, align the
     ones between motion-only, and run a BA.
 
@@ -137,32 +137,33 @@ def start_map(graph: KeyframeGraph, params: InitParams, ba_params: BAParams, mot
     leaves the essential matrix degenerate). Each seeds the window and is adjusted; the lowest BA cost wins.
     Two keyframes of a plane cannot tell a homography's twin motions apart, so a planar start waits for a third.
 
-    Returns False (graph unchanged) when there is not yet enough parallax; ``force`` tries with what there is.
+    Returns the final BA cost (inf when forced without a two-view solution: identity poses), or None (graph
+    unchanged) when there is not yet enough parallax; ``force`` tries with what there is.
     """
     n = len(graph)
     if n < 2 or (n < params.min_keyframes and not force):
-        return False
+        return None
     flow = parallax(graph)
     if flow < params.min_flow and not force:
-        return False
+        return None
     tg = graph.targets(0, n - 1)
     candidates = _candidates(tg, working_intrinsics(graph.intrinsics), params, n, force)
     if candidates is None:  # planar with two keyframes: wait for a third
-        return False
+        return None
     if not candidates:
         if not force:
-            return False
+            return None
         logger.warning("two-view start failed at end of stream; keyframes keep identity poses")
-        return True
+        return float("inf")
     iterations = dataclasses.replace(ba_params, iterations=params.iterations)
     best, costs = candidates[0], []
     if len(candidates) > 1:
         costs = [_seed_and_adjust(graph, c, iterations, motion_params) for c in candidates]
         best = candidates[int(np.argmin(costs))]
-    _seed_and_adjust(graph, best, iterations, motion_params)
+    cost = _seed_and_adjust(graph, best, iterations, motion_params)
     logger.info("map initialised", extra={"keyframes": n, "inliers": best.inliers, "model": best.model,
                                           "flow": round(flow, 2), "candidate_costs": [round(c, 3) for c in costs]})
-    return True
+    return cost
 
 
 def _candidates(tg, intrinsics_work: np.ndarray, params: InitParams, n: int, force: bool) -> list[TwoView] | None:

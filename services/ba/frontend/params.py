@@ -58,6 +58,8 @@ class FrontendParams:
     ba: BAParams = field(default_factory=lambda: BAParams(iterations=3, optimise_focal=True))  # per new keyframe
     global_ba: BAParams = field(default_factory=lambda: BAParams(iterations=10, optimise_focal=True))  # end
     flow: FlowParams = field(default_factory=FlowParams)
+    focal_restarts: tuple[float, ...] = (0.7, 1.0, 1.4)  # at focal_after keyframes the map starts again from
+    # these x the focal guess, focal free; the lowest BA cost is kept (Frontend._calibrate_focal)
     focal_after: int = 6  # the focal length is refined once the window holds this many keyframes
     focal_until: int = 30  # ... and frozen after this many keyframes: under long forward motion focal and depth
     # trade off, and the focal drifts (KITTI 07: 455 -> 371 working px over frames 60-100 when never frozen)
