@@ -169,6 +169,23 @@ def test_a_fixed_camera_watching_a_moving_object_stays_put():
     assert np.linalg.norm(rel[:, :3, 3], axis=1).max() < 0.01  # map units: the constant disparity is 1
 
 
+def test_frames_after_the_last_keyframe_get_a_pose_at_the_end():
+    """A stream that ends on ordinary frames (the source stopped before the next keyframe): every frame is posed."""
+    rng = np.random.default_rng(4)
+    import cv2
+
+    texture = cv2.GaussianBlur(rng.integers(0, 255, (96, 128), dtype=np.uint8), (0, 0), 1.5)
+    fe = Frontend()
+    k = np.array([100.0, 100.0, 63.5, 47.5])
+    fe.add_keyframe(KeyframeInput(0, 0, texture, k))
+    fe.add_keyframe(KeyframeInput(1, 100_000_000, np.roll(texture, 1, axis=1), k))
+    for n in range(2, 5):
+        fe.add_frame(FrameInput(n, n * 100_000_000, np.roll(texture, 1, axis=1)))
+    poses = fe.finish().poses
+    assert sorted(poses.frame_seqs.tolist()) == [0, 1, 2, 3, 4]
+    assert np.isfinite(poses.poses).all()
+
+
 def test_a_ba_result_whose_keyframe_flies_off_is_refused():
     from services.ba.core.ba import BAState
     from services.ba.frontend.graph import KeyframeGraph

@@ -176,7 +176,8 @@ class Frontend:
             everything = list(range(len(g)))
             pairs = sorted(set(g.pairs(everything, self.params.graph.global_radius)))
             g.run(everything, pairs, self._ba_params(everything, self.params.global_ba))
-        for seq in self.frames.pending(g):
+        # frames after the last keyframe too: at the end no later keyframe will come to bracket them
+        for seq in [s for s, f in self.frames.frames.items() if f.anchor is None]:
             self.frames.align(g, seq)
         return self._update(list(range(len(g))), every_frame=True)
 
