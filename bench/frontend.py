@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -43,6 +44,82 @@ from services.ingest.sources import SourceFrame, open_source
 from services.runner.groundtruth import evaluate
 
 
+@dataclass
+class FrontendRun:
+    """What :func:`run_frontend` produced."""
+
+    latest: dict[int, tuple[int, np.ndarray]]  # seq -> (t_ns, world_from_cam): the last pose published
+    first: dict[int, tuple[int, np.ndarray]]  # seq -> the first pose (tracking's with track=True)
+    focal_px: float  # estimated focal length, source pixels
+    start_focal_px: float
+    keyframes: int
+    graph_keyframes: int
+    ba_seconds: float
+    finish_seconds: float
+    wall_seconds: float
+    frontend: Frontend
+
+    def trajectory(self, first: bool = False) -> Trajectory:
+        poses = self.first if first else self.latest
+        seqs = sorted(poses)
+        return Trajectory(np.array([poses[s][0] for s in seqs]) / 1e9, np.stack([poses[s][1] for s in seqs]))
+
+
+def run_frontend(frames: list[SourceFrame], focal: float | None = None,
+                 kf_threshold: float = KeyframeParams.threshold_grid_px, track: bool = False,
+                 verbose: bool = False, progress: bool = True) -> FrontendRun:
+    """``frames`` through the keyframe selector and the frontend as the pipeline does (see the module docstring).
+    ``focal``: the start focal in source pixels (default: the 60 deg prior, i.e. no calibration)."""
+    frontend = Frontend(BaSettings().frontend_params(), "cpu")
+    selector = KeyframeSelector(KeyframeParams(threshold_grid_px=kf_threshold))
+    n_kf, ba_seconds, t_start = 0, 0.0, time.perf_counter()
+    height, width = frames[0].rgb.shape[:2]
+    size = working_size(height, width)
+    start = fov_prior(height, width) if focal is None else Intrinsics(focal, focal, (width - 1) / 2, (height - 1) / 2)
+    k_work = start.scaled(size.scale_x, size.scale_y).as_array()
+    latest: dict[int, tuple[int, np.ndarray]] = {}
+    first: dict[int, tuple[int, np.ndarray]] = {}
+    settings = BaSettings()
+    tracker = Tracker(settings.frontend_params().motion, settings.tracking_flow_params()) if track else None
+
+    def keep(update) -> None:
+        if update.poses is not None:
+            for seq, stamp, pose in zip(update.poses.frame_seqs, update.poses.stamps_ns, update.poses.poses):
+                latest[int(seq)] = (int(stamp), pose)
+                first.setdefault(int(seq), (int(stamp), pose))
+
+    for n, frame in enumerate(tqdm(frames, unit="frame", disable=not progress)):
+        work = to_grey(resize_to_working(frame.rgb, size))
+        tracked = _track(tracker, frontend, frame, work, first)
+        if selector.observe(work).is_keyframe or n == len(frames) - 1:
+            selector.set_reference(work)
+            guess = None
+            if tracked is not None:  # as the tracking thread does: move on to the keyframe, start mapping there
+                guess = torch.from_numpy(first[frame.index][1])
+                tracker.promote(frame.index, frame.t_ns, work, guess)
+                g = frontend.graph
+                if tracked[0] in g.seqs:
+                    guess = g.poses[g.index(tracked[0])] @ tracked[1]
+            t0 = time.perf_counter()
+            keep(frontend.add_keyframe(KeyframeInput(frame.index, frame.t_ns, work, k_work, pose_guess=guess)))
+            ba_seconds += time.perf_counter() - t0
+            n_kf += 1
+            if tracker is not None and (ref := frontend.reference()) is not None:
+                tracker.set_reference(ref)
+            if verbose:
+                _print_steps(frontend, frame.index, time.perf_counter() - t0)
+        else:
+            lite = cv2.resize(work, (work.shape[1] // 2, work.shape[0] // 2), interpolation=cv2.INTER_AREA)
+            keep(frontend.add_frame(FrameInput(frame.index, frame.t_ns, lite, tracked)))
+    t0 = time.perf_counter()
+    keep(frontend.finish())
+    finish_seconds = time.perf_counter() - t0
+    graph_kf = len(frontend.graph) if frontend.graph is not None else 0
+    focal_px = float(frontend.intrinsics[0]) / size.scale_x if frontend.graph is not None else start.fx
+    return FrontendRun(latest, first, focal_px, start.fx, n_kf, graph_kf, ba_seconds, finish_seconds,
+                       time.perf_counter() - t_start, frontend)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("source", help="anything `kmvipe run` takes: image folder, video, synth:...")
@@ -61,59 +138,13 @@ def main() -> None:
     setup_logging("bench-frontend", LogSettings(level="WARNING"))
     frames = [f for f in open_source(args.source).frames() if isinstance(f, SourceFrame)]
     frames = frames[args.first:][: args.max_frames]
-    frontend = Frontend(BaSettings().frontend_params(), "cpu")
-    selector = KeyframeSelector(KeyframeParams(threshold_grid_px=args.kf_threshold))
-    n_kf, ba_seconds, t_start = 0, 0.0, time.perf_counter()
-    height, width = frames[0].rgb.shape[:2]
-    size = working_size(height, width)
-    start = fov_prior(height, width) if args.focal is None else Intrinsics(args.focal, args.focal, (width - 1) / 2,
-                                                                             (height - 1) / 2)
-    k_work = start.scaled(size.scale_x, size.scale_y).as_array()
-    latest: dict[int, tuple[int, np.ndarray]] = {}  # seq -> (t_ns, pose): the last pose published, as the runner keeps
-    first: dict[int, tuple[int, np.ndarray]] = {}  # seq -> the first pose (tracking's with --track)
-    settings = BaSettings()
-    tracker = Tracker(settings.frontend_params().motion, settings.tracking_flow_params()) if args.track else None
-
-    def keep(update) -> None:
-        if update.poses is not None:
-            for seq, stamp, pose in zip(update.poses.frame_seqs, update.poses.stamps_ns, update.poses.poses):
-                latest[int(seq)] = (int(stamp), pose)
-                first.setdefault(int(seq), (int(stamp), pose))
-
-    for n, frame in enumerate(tqdm(frames, unit="frame")):
-        work = to_grey(resize_to_working(frame.rgb, size))
-        tracked = _track(tracker, frontend, frame, work, first)
-        if selector.observe(work).is_keyframe or n == len(frames) - 1:
-            selector.set_reference(work)
-            guess = None
-            if tracked is not None:  # as the tracking thread does: move on to the keyframe, start mapping there
-                guess = torch.from_numpy(first[frame.index][1])
-                tracker.promote(frame.index, frame.t_ns, work, guess)
-                g = frontend.graph
-                if tracked[0] in g.seqs:
-                    guess = g.poses[g.index(tracked[0])] @ tracked[1]
-            t0 = time.perf_counter()
-            keep(frontend.add_keyframe(KeyframeInput(frame.index, frame.t_ns, work, k_work, pose_guess=guess)))
-            ba_seconds += time.perf_counter() - t0
-            n_kf += 1
-            if tracker is not None and (ref := frontend.reference()) is not None:
-                tracker.set_reference(ref)
-            if args.verbose:
-                _print_steps(frontend, frame.index, time.perf_counter() - t0)
-        else:
-            lite = cv2.resize(work, (work.shape[1] // 2, work.shape[0] // 2), interpolation=cv2.INTER_AREA)
-            keep(frontend.add_frame(FrameInput(frame.index, frame.t_ns, lite, tracked)))
-    t0 = time.perf_counter()
-    keep(frontend.finish())
-    finish_seconds = time.perf_counter() - t0
-    seqs = sorted(latest)
-    est = Trajectory(np.array([latest[s][0] for s in seqs]) / 1e9, np.stack([latest[s][1] for s in seqs]))
+    run = run_frontend(frames, args.focal, args.kf_threshold, args.track, args.verbose)
+    est = run.trajectory()
     poses = est.world_from_cam
-    focal = frontend.intrinsics[0] / size.scale_x
-    print(f"frames {len(frames)}  posed {len(seqs)}  keyframes {n_kf} (graph {len(frontend.graph)})")
-    print(f"focal {focal:.1f} px (start {start.fx:.1f})")
-    print(f"BA {ba_seconds:.1f} s ({ba_seconds / max(n_kf, 1):.2f} s/keyframe), finish {finish_seconds:.1f} s, "
-          f"wall {time.perf_counter() - t_start:.1f} s")
+    print(f"frames {len(frames)}  posed {len(run.latest)}  keyframes {run.keyframes} (graph {run.graph_keyframes})")
+    print(f"focal {run.focal_px:.1f} px (start {run.start_focal_px:.1f})")
+    print(f"BA {run.ba_seconds:.1f} s ({run.ba_seconds / max(run.keyframes, 1):.2f} s/keyframe), finish "
+          f"{run.finish_seconds:.1f} s, wall {run.wall_seconds:.1f} s")
     print("time in: " + ", ".join(f"{name} {sec:.1f} s ({calls} calls)" for name, (sec, calls) in spent.items()))
     rel = np.linalg.inv(poses[0]) @ poses
     angles = np.degrees(np.arccos(np.clip((np.trace(rel[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1)))
@@ -122,10 +153,8 @@ def main() -> None:
     ate = evaluate(args.source, est)
     if ate is not None:
         print(f"ATE sim3 rmse {ate.rmse:.3f} m  max {ate.max:.3f} m  pairs {ate.n_pairs}")
-    if tracker is not None:
-        seqs = sorted(first)
-        at_once = evaluate(args.source, Trajectory(np.array([first[s][0] for s in seqs]) / 1e9,
-                                                   np.stack([first[s][1] for s in seqs])))
+    if args.track:
+        at_once = evaluate(args.source, run.trajectory(first=True))
         if at_once is not None:
             print(f"ATE of the first (tracked) poses: sim3 rmse {at_once.rmse:.3f} m  pairs {at_once.n_pairs}")
     if args.out:

@@ -59,13 +59,17 @@ class InstanceBox:
 class SynthWorld:
     """Deterministic synthetic sequence defined by a :class:`SynthConfig` (textures built once here)."""
 
-    def __init__(self, config: SynthConfig | None = None) -> None:
+    def __init__(self, config: SynthConfig | None = None, poses: np.ndarray | None = None) -> None:
+        """``poses``: an ``(n_frames, 4, 4)`` world_from_cam trajectory to render instead of the config's camera
+        (motion profiles: bench/robustness.py)."""
         self.config = config or SynthConfig()
         cfg = self.config
         self.label_names: tuple[str, ...] = LABEL_NAMES
         self.instances: tuple[Instance, ...] = build_instances(cfg)
         self.intrinsics = intrinsics(cfg)
-        self._poses = trajectory(cfg)
+        self._poses = trajectory(cfg) if poses is None else np.asarray(poses, np.float64)
+        if self._poses.shape != (cfg.n_frames, 4, 4):
+            raise ConfigError(f"poses must be ({cfg.n_frames}, 4, 4) for n_frames={cfg.n_frames}, got {self._poses.shape}")
         self._room_hi = np.asarray(cfg.room_size, float)
         if not ((self._poses[:, :3, 3] > 0) & (self._poses[:, :3, 3] < self._room_hi)).all():
             raise ConfigError("camera trajectory leaves the room; reduce orbit_radius or enlarge room_size")
