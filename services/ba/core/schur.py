@@ -25,7 +25,9 @@ _JITTER = 1e-9
 class NormalEquations(NamedTuple):
     """Per-edge Jacobians and weighted residuals, pixels last (``P`` contiguous), ``R`` residual components.
 
-    The per-pixel tensors may be float32 (the solver's reductions to the camera system run in float64)."""
+    The per-pixel tensors may be float32: per-pixel products stay in their dtype, every sum over pixels (the
+    camera blocks, their gradient and the Schur complement's coupling products) accumulates in the camera
+    system's dtype (float64 in BA)."""
 
     j_cam: torch.Tensor  # (E, 7, R, P) d residual / d [xi_i, f]; d residual / d xi_j = -d residual / d xi_i
     j_disp: torch.Tensor  # (E, R, P) d residual / d source disparity
@@ -79,11 +81,15 @@ def solve(eq: NormalEquations, ii: torch.Tensor, jj: torch.Tensor, n_kf: int, fr
     n_ext = n_cam + 1  # one dummy column for padded slots
     wr = eq.weight * eq.residual
     wd = eq.weight * eq.j_disp
-    flat_j = eq.j_cam.reshape(n_edges, 7, n_res * n_pix)
+    # Sums over thousands of pixels: in float32 their rounding (~1e-7 relative per partial sum) is of the order of
+    # what the Schur complement leaves after cancelling when scale or focal are barely observable, so the operands
+    # of every reduction are promoted to the camera dtype first (tests/test_schur_conditioning.py)
+    flat_j = eq.j_cam.reshape(n_edges, 7, n_res * n_pix).to(dtype)
     expand = _expansion(dtype, dev)  # (13, 7): [xi_i, xi_j, f] from [xi_i, f]
-    h_77 = torch.bmm(flat_j * eq.weight.reshape(n_edges, 1, -1), flat_j.transpose(1, 2)).to(dtype)
+    h_77 = torch.bmm(flat_j * eq.weight.reshape(n_edges, 1, -1).to(dtype), flat_j.transpose(1, 2))
     h_cc = expand @ h_77 @ expand.T
-    g_c = -torch.bmm(flat_j, wr.reshape(n_edges, -1, 1))[..., 0].to(dtype) @ expand.T
+    g_c = -torch.bmm(flat_j, wr.reshape(n_edges, -1, 1).to(dtype))[..., 0] @ expand.T
+    del flat_j
     # sum over the few residual components explicitly: a batched matmul of P*E tiny matrices is far slower
     h_cd7 = sum(eq.j_cam[:, :, r] * wd[:, None, r] for r in range(n_res))  # (E, 7, P) = [xi_i, f]
     ar6 = torch.arange(6, device=dev)
@@ -116,11 +122,12 @@ def solve(eq: NormalEquations, ii: torch.Tensor, jj: torch.Tensor, n_kf: int, fr
     diag = torch.diagonal(big_h)
     big_h = big_h + torch.diag(lm * diag + pose_eps)
     inv_dd = 1 / (h_dd * (1 + lm) + disp_eps)
-    scaled = coupling * inv_dd[:, None, :]
-    blocks = torch.bmm(scaled, coupling.transpose(1, 2)).to(dtype)  # (N, D, D)
+    coupling64 = coupling.to(dtype)
+    scaled = coupling64 * inv_dd.to(dtype)[:, None, :]
+    blocks = torch.bmm(scaled, coupling64.transpose(1, 2))  # (N, D, D)
     schur = big_h.reshape(-1).index_add(0, (colmap[:, :, None] * n_ext + colmap[:, None, :]).reshape(-1),
                                         -blocks.reshape(-1)).view(n_ext, n_ext)
-    rhs = big_g.index_add(0, colmap.reshape(-1), -torch.bmm(scaled, g_d[:, :, None]).to(dtype).reshape(-1))
+    rhs = big_g.index_add(0, colmap.reshape(-1), -torch.bmm(scaled, g_d.to(dtype)[:, :, None]).reshape(-1))
 
     s_ff = schur[free_cam][:, free_cam]
     chol, info = torch.linalg.cholesky_ex(s_ff)
@@ -133,5 +140,5 @@ def solve(eq: NormalEquations, ii: torch.Tensor, jj: torch.Tensor, n_kf: int, fr
         delta_free = torch.linalg.pinv(s_ff) @ rhs[free_cam]
     delta_cam = torch.zeros(n_ext, dtype=dtype, device=dev)
     delta_cam[free_cam] = delta_free
-    delta_d = inv_dd * (g_d - torch.bmm(delta_cam[colmap].to(pix_dtype)[:, None], coupling)[:, 0])
-    return Step(delta_cam[: 6 * n_kf].view(n_kf, 6), delta_cam[6 * n_kf], delta_d.to(dtype))
+    delta_d = inv_dd.to(dtype) * (g_d.to(dtype) - torch.bmm(delta_cam[colmap][:, None], coupling64)[:, 0])
+    return Step(delta_cam[: 6 * n_kf].view(n_kf, 6), delta_cam[6 * n_kf], delta_d)
