@@ -34,7 +34,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     cfg = RunSettings(
         source=args.source, out=Path(args.out), stream=args.stream, pacing=args.pacing, encoding=args.encoding,
         intrinsics=tuple(args.intrinsics) if args.intrinsics else None, max_frames=args.max_frames, serve=args.serve,
-        skip=tuple(args.skip), port=args.port,
+        skip=tuple(args.skip), port=args.port, depth=getattr(args, "depth", False),
+        depth_scale=getattr(args, "depth_scale", None),
     )
     report = run_pipeline(cfg, on_outputs=_print_summary)  # the summary is printed as soon as it is written
     if report.stopped_by:  # SIGINT / SIGTERM / SIGHUP before the end of the stream: the shell's 128 + signal
@@ -128,6 +129,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("source", help="video file, image folder, camera index, rtsp/http URL, or synth:...")
     p.add_argument("--out", default="out/run", help="output directory")
     p.add_argument("--serve", action="store_true", help="keep the query API up after the stream ends")
+    p.add_argument("--depth", action="store_true",
+                   help="use the source's sensor depth (a folder's depth.txt, synth:depth=1); off: RGB only")
+    p.add_argument("--depth-scale", type=float, default=None, metavar="UNITS_PER_M",
+                   help="depth PNG units per metre (default per dataset: ADT 1000, TUM 5000)")
     _add_stream_options(p)
     p.set_defaults(func=_cmd_run)
 

@@ -50,7 +50,7 @@ def test_tum_folder_with_depth(tmp_path):
         dlines.append(f"{t + 0.005:.6f} depth/{i}.png")
     (tmp_path / "rgb.txt").write_text("# rgb\n" + "\n".join(lines))
     (tmp_path / "depth.txt").write_text("\n".join(dlines))
-    got = list(open_source(str(tmp_path)).frames())
+    got = list(open_source(str(tmp_path), use_depth=True).frames())  # depth is opt-in
     assert [f.t_ns for f in got] == [int(round(float(f"{100.0 + i / 30:.6f}") * 1e9)) for i in range(3)]
     assert [float(f.depth.mean()) for f in got] == [1.0, 2.0, 3.0]  # metres (TUM: 5000 per metre)
 

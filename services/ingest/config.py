@@ -23,8 +23,12 @@ class IngestSettings(BaseSettings):
     jpeg_quality: int = Field(90, ge=10, le=100)
     intrinsics: list[float] | None = None
     """Optional hint ``[fx, fy, cx, cy]`` in source pixels; without it, features guesses and BA refines."""
-    use_depth: bool = True
-    """Send sensor depth when the source has it (TUM depth folder)."""
+    use_depth: bool = False
+    """Send sensor depth when the source has it (a folder's ``depth.txt``; ``synth:depth=1``). Opt-in: a depth
+    file that happens to lie in a folder is not used without it (``kmvipe run --depth``)."""
+    depth_scale: float | None = Field(None, gt=0)
+    """Depth PNG units per metre; default per dataset: 1000 (millimetres) for an Aria Digital Twin folder, else
+    5000 (TUM RGB-D)."""
     max_frames: int | None = Field(None, ge=1)
     stride: int = Field(1, ge=1)
     fps: float | None = Field(None, gt=0)

@@ -62,7 +62,8 @@ class CreditGate:
 
 def run(cfg: IngestSettings, bus: Bus, stop: threading.Event, source: Source | None = None) -> IngestCounters:
     """Stream ``cfg.source`` (or ``source``) onto the bus until it ends or ``stop`` is set."""
-    source = source or open_source(cfg.source, fps=cfg.fps, use_depth=cfg.use_depth)
+    source = source or open_source(cfg.source, fps=cfg.fps, use_depth=cfg.use_depth,
+                                   depth_scale=cfg.depth_scale)
     gate = CreditGate(cfg.credit_ttl_s)
     bus.subscribe(keys.topic(cfg.stream, keys.CREDIT), gate.on_credit, expect=[Credit])
     bus.ready()

@@ -20,6 +20,7 @@ log = logging.getLogger(__name__)
 VIDEO_SUFFIXES = {".mp4", ".avi", ".mkv", ".mov", ".webm", ".m4v"}
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm"}
 TUM_DEPTH_SCALE = 5000.0  # TUM RGB-D depth PNGs: 16-bit, 5000 units per metre
+ADT_DEPTH_SCALE = 1000.0  # Aria Digital Twin depth PNGs: 16-bit millimetres (z-depth)
 MAX_CONSECUTIVE_FAILURES = 25  # a video that fails this many reads in a row has ended
 
 
@@ -122,9 +123,16 @@ class ImageFolderSource:
 
     live = False
 
-    def __init__(self, root: Path, fps: float | None = None, use_depth: bool = True):
+    def __init__(self, root: Path, fps: float | None = None, use_depth: bool = False,
+                 depth_scale: float | None = None):
+        """``use_depth``: read the sensor depth a ``depth.txt`` lists (off by default: a depth file lying in a
+        folder is no request to use it); ``depth_scale``: depth PNG units per metre, default per dataset
+        (:func:`depth_units`)."""
         self.name = str(root)
         self.entries = self._scan(root, use_depth)
+        self.depth_scale = depth_units(root) if depth_scale is None else float(depth_scale)
+        if not self.depth_scale > 0:
+            raise SourceError(f"depth scale must be > 0 units per metre, got {self.depth_scale}")
         if not self.entries:
             raise SourceError(f"no images found in {root} (looked for rgb.txt, image_0/, image_2/ and image files)")
         if fps:
@@ -165,15 +173,25 @@ class ImageFolderSource:
             if entry.depth_path is not None:
                 raw = cv2.imread(str(entry.depth_path), cv2.IMREAD_UNCHANGED)
                 if raw is not None and raw.shape[:2] == image.shape[:2]:
-                    depth = raw.astype(np.float32) / TUM_DEPTH_SCALE
+                    depth = raw.astype(np.float32) / self.depth_scale
                 else:
                     log.warning("depth image unreadable or of another size; frame sent without depth",
                                 extra={"seq": index, "path": str(entry.depth_path)})
             yield SourceFrame(index, entry.t_ns, _bgr_to_rgb(image), depth)
 
 
-def open_source(spec: str, fps: float | None = None, use_depth: bool = True) -> Source:
-    """Open a source from its spec (see IngestSettings.source)."""
+def depth_units(root: Path) -> float:
+    """Depth PNG units per metre of an image folder: millimetres for an Aria Digital Twin extraction (it keeps
+    ADT's ``camera_rgb_calibration.json``), else TUM RGB-D's 5000 (the layout ``depth.txt`` comes from)."""
+    if (root / "camera_rgb_calibration.json").is_file():
+        return ADT_DEPTH_SCALE
+    return TUM_DEPTH_SCALE
+
+
+def open_source(spec: str, fps: float | None = None, use_depth: bool = False,
+                depth_scale: float | None = None) -> Source:
+    """Open a source from its spec (see IngestSettings.source); ``use_depth`` / ``depth_scale``: sensor depth of
+    an image folder (see :class:`ImageFolderSource`)."""
     if not spec:
         raise SourceError("no source given: pass a video file, image folder, camera index, URL or synth:")
     if spec.startswith("synth:"):
@@ -191,7 +209,7 @@ def open_source(spec: str, fps: float | None = None, use_depth: bool = True) -> 
         return CaptureSource(spec, spec, live=True)
     path = Path(spec).expanduser()
     if path.is_dir():
-        return ImageFolderSource(path, fps=fps, use_depth=use_depth)
+        return ImageFolderSource(path, fps=fps, use_depth=use_depth, depth_scale=depth_scale)
     if path.is_file():
         if path.suffix.lower() not in VIDEO_SUFFIXES:
             log.warning("unknown video suffix; trying OpenCV anyway", extra={"path": str(path)})

@@ -45,6 +45,8 @@ class RunSettings:
     serve: bool = False
     skip: tuple[str, ...] = ()  # built services not to start (e.g. the gateway on a headless batch run)
     port: int = 8000  # the query gateway's HTTP port on 127.0.0.1
+    depth: bool = False  # send the source's sensor depth (opt-in: ``kmvipe run --depth``)
+    depth_scale: float | None = None  # depth PNG units per metre (None: per dataset, see ingest's depth_units)
     credit_window: int = 8  # frames the runner lets ingest run ahead when it is the only consumer
     alive_timeout_s: float = 120.0  # model loading can take a while on a cold CPU
     stall_timeout_s: float = 600.0  # no message at all for this long means something hung
@@ -270,6 +272,9 @@ def _service_env(name: str, cfg: RunSettings) -> dict[str, str]:
             env[prefix + "INTRINSICS"] = json.dumps(list(cfg.intrinsics))
         if cfg.max_frames:
             env[prefix + "MAX_FRAMES"] = str(cfg.max_frames)
+        env[prefix + "USE_DEPTH"] = "true" if cfg.depth else "false"
+        if cfg.depth_scale is not None:
+            env[prefix + "DEPTH_SCALE"] = str(cfg.depth_scale)
     return env
 
 
