@@ -94,3 +94,29 @@ def embedding_residual(source_codes: torch.Tensor, sample: CodeSample, form: str
     # outside the map the sample is clamped: no usable gradient
     d_coords = d_coords * sample.inside[..., None]
     return EmbeddingResidual(cs.clamp(-1, 1), residual, d_coords, sample.inside)
+
+
+def uncentred_codes(codes: torch.Tensor, mean: torch.Tensor, components: torch.Tensor) -> torch.Tensor:
+    """Codes whose cosine similarity is that of the backbone features they reconstruct, not of the centred codes.
+
+    A PCA basis (mean ``mu`` (D,), orthonormal rows ``V`` (K, D)) codes a feature as ``z = V (f - mu)``, so the
+    cosine of two codes ignores the mean feature that all DINO features share: centred codes of unrelated
+    surfaces are near orthogonal, their raw features are not. KM-ViPE's reference kernel thresholds the raw
+    cosine (cs < 0.4), which the reconstructions ``f = mu + V^T z`` give exactly: with ``m = V mu`` and
+    ``r = |mu - V^T m|``, ``f_a . f_b = (z_a + m) . (z_b + m) + r^2``, i.e. the dot product of ``[z + m, r]``.
+
+    Args:
+        codes: ``(..., K)`` centred PCA codes.
+        mean: ``(D,)`` the basis mean ``mu``.
+        components: ``(K, D)`` the basis rows ``V``.
+    Returns:
+        ``(..., K + 1)`` codes in ``codes``' dtype.
+    """
+    if components.shape[0] != codes.shape[-1] or components.shape[1:] != mean.shape:
+        raise ValueError(f"codes (..., K), mean (D,), components (K, D) expected, got {tuple(codes.shape)}, "
+                         f"{tuple(mean.shape)}, {tuple(components.shape)}")
+    mu, v = mean.double(), components.double()
+    m = v @ mu
+    rest = (mu - v.T @ m).norm()
+    shifted = codes + m.to(codes.dtype)
+    return torch.cat([shifted, rest.to(codes.dtype).expand(*codes.shape[:-1], 1)], -1)

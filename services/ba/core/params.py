@@ -3,6 +3,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+ARK_MODES = ("centred", "paper")  # RobustParams.ark_mode
+
 
 @dataclass(frozen=True)
 class RobustParams:
@@ -17,6 +19,24 @@ class RobustParams:
     scale: float = 0.5  # Barron scale c, in grid pixels (1/8 of working-resolution pixels)
     ark_refresh_px: float = 0.25  # re-sample an edge's codes for ARK once a reprojection moved this far (grid
     # px) since its last sample; 0 = every iteration (services.ba.core.ark)
+    ark_mode: str = "centred"  # shape map from the cosine: "centred" (alpha_static/alpha_dynamic/kappa/tau above,
+    # tuned on the centred PCA codes) or "paper" (KM-ViPE's reference map, the paper_* fields below)
+    paper_alpha_low: float = -10.0  # "paper": shape at and below paper_floor (heavier than Cauchy)
+    paper_alpha_high: float = 2.0  # "paper": shape the ramp tends to at cs = 1 (L2)
+    paper_floor: float = 0.4  # "paper": cosine below which the shape is paper_alpha_low
+    paper_mid: float = 0.5  # "paper": ramp midpoint, as a fraction of [paper_floor, 1] (cs = 0.7 by default)
+    paper_tau: float = 0.1  # "paper": ramp temperature, in the same normalised units
+
+    def __post_init__(self) -> None:
+        if self.ark_mode not in ARK_MODES:
+            raise ValueError(f"ark_mode must be one of {ARK_MODES}, got {self.ark_mode!r}")
+        if not -1 <= self.paper_floor < 1:
+            raise ValueError(f"paper_floor must lie in [-1, 1), got {self.paper_floor}")
+        if not self.paper_tau > 0 or not self.tau > 0:
+            raise ValueError(f"tau and paper_tau must be > 0, got {self.tau}, {self.paper_tau}")
+        if not self.paper_alpha_low <= self.paper_alpha_high:
+            raise ValueError(f"paper_alpha_low must be <= paper_alpha_high, got {self.paper_alpha_low}, "
+                             f"{self.paper_alpha_high}")
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,4 @@
-"""Barron's general robust loss and the ARK (adaptive robust kernel) shape map.
+"""Barron's general robust loss and the ARK (adaptive robust kernel) shape maps (ours and KM-ViPE's reference).
 
 Barron, "A General and Adaptive Robust Loss Function", CVPR 2019, eq. (1), with ``z = (x/c)^2`` and
 ``b = |alpha - 2|``::
@@ -113,3 +113,38 @@ def ark_alpha(cosine: torch.Tensor, alpha_static: float, alpha_dynamic: float, k
     if not tau > 0 or not math.isfinite(tau):
         raise ValueError(f"tau must be a positive finite number, got {tau}")
     return alpha_static + (alpha_dynamic - alpha_static) * torch.sigmoid(-(cosine - kappa) / tau)
+
+
+def ark_alpha_paper(cosine: torch.Tensor, alpha_low: float = -10.0, alpha_high: float = 2.0, floor: float = 0.4,
+                    mid: float = 0.5, tau: float = 0.1) -> torch.Tensor:
+    """KM-ViPE's reference shape map (be2rlab/km-vipe, ``vipe/slam/ba/terms.py``, ``calculate_alpha``)::
+
+        alpha(cs) = alpha_low                                                       cs <  floor
+                  = alpha_low + (alpha_high - alpha_low) * sigmoid((x - mid) / tau)  cs >= floor,
+        x = clamp((cs - floor) / (1 - floor), 0, 1)
+
+    With the defaults: -10 below cs = 0.4, a logistic ramp above it with midpoint cs = 0.7 (alpha = -4) that
+    reaches 1.92 at cs = 1; the ramp starts at -9.92, so the map jumps by 0.08 at the floor (kept: it is the
+    reference's). Monotone non-decreasing in cs.
+
+    Args:
+        cosine: ``(...)`` cosine similarity in [-1, 1] (the reference compares raw, un-centred DINO features).
+    Returns:
+        ``(...)`` alpha, same dtype as ``cosine``.
+    """
+    if not tau > 0 or not floor < 1:
+        raise ValueError(f"tau must be > 0 and floor < 1, got tau={tau}, floor={floor}")
+    x = ((cosine - floor) / (1 - floor)).clamp(0, 1)
+    ramp = alpha_low + (alpha_high - alpha_low) * torch.sigmoid((x - mid) / tau)
+    return torch.where(cosine < floor, torch.full_like(ramp, alpha_low), ramp)
+
+
+def ark_shape(cosine: torch.Tensor, params) -> torch.Tensor:
+    """Per-pixel shape of the ARK mode ``params.ark_mode`` (a :class:`services.ba.core.params.RobustParams`):
+    "centred" is :func:`ark_alpha`, "paper" is :func:`ark_alpha_paper`."""
+    if params.ark_mode == "paper":
+        return ark_alpha_paper(cosine, params.paper_alpha_low, params.paper_alpha_high, params.paper_floor,
+                               params.paper_mid, params.paper_tau)
+    if params.ark_mode == "centred":
+        return ark_alpha(cosine, params.alpha_static, params.alpha_dynamic, params.kappa, params.tau)
+    raise ValueError(f"ark_mode must be 'centred' or 'paper', got {params.ark_mode!r}")
