@@ -88,3 +88,21 @@ def test_uncentred_codes_give_raw_feature_cosine():
     assert (raw - centred).abs().max() > 0.1  # the two cosines differ: the mode choice matters
     with pytest.raises(ValueError):
         embedding.uncentred_codes(z, mu[:-1], v)
+
+
+def test_ba_uses_the_mode_it_is_given():
+    """run_ba weighs the flow with the configured ARK map: the same window and codes give a different energy."""
+    import dataclasses
+
+    from services.ba.core import ba, synthetic
+    from services.ba.core.params import BAParams
+
+    win = synthetic.make_window(n=4, h=12, w=16, seed=1, surface="room")
+    codes = torch.randn(4, 12, 16, 8, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    problem = win.problem._replace(codes=codes)
+    start = ba.BAState(synthetic.perturb_poses(win.truth.poses, 0.02, 1.0, torch.Generator().manual_seed(2)),
+                       win.truth.disparity.clone(), win.truth.intrinsics.clone())
+    base = BAParams(iterations=1, compute_dtype="float64")
+    centred = ba.run_ba(start, problem, base)
+    paper = ba.run_ba(start, problem, dataclasses.replace(base, robust=RobustParams(ark_mode="paper")))
+    assert centred.costs[0] != pytest.approx(paper.costs[0], rel=1e-6)

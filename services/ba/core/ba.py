@@ -148,7 +148,7 @@ def _ark(res: _Residuals, prep: _Prepared, params: BAParams,
 def _frozen(res: _Residuals, params: BAParams, ark: ark_codes.ArkCosine | None) -> _Frozen:
     rob = params.robust
     if ark is not None:
-        alpha = robust.ark_alpha(ark.cosine, rob.alpha_static, rob.alpha_dynamic, rob.kappa, rob.tau)
+        alpha = robust.ark_shape(ark.cosine, rob)  # today's centred map or the paper's (RobustParams.ark_mode)
     else:
         alpha = torch.full_like(res.flow_w, rob.fixed_alpha)
     kern = robust.kernel(alpha, alpha.dtype, alpha.device)
