@@ -201,4 +201,11 @@ def test_a_ba_result_whose_keyframe_flies_off_is_refused():
     assert not graph._jumped(start, BAState(corrected, start.disparity, start.intrinsics))
     flown = poses.clone()
     flown[4, 0, 3] = 2.0 + 8.0  # the newest keyframe slid along its free direction
-    assert graph._jumped(start, BAState(flown, start.disparity, start.intrinsics))
+    assert graph._jumped(start, BAState(flown, start.disparity, start.intrinsics)) == 4  # the one to demote
+    # under rotation two keyframes can start almost at one place; BA finding their true step is no jump
+    turning = poses.clone()
+    turning[:, 0, 3] = torch.tensor([0.0, 0.3, 0.301, 0.6, 0.9])
+    grown = turning.clone()
+    grown[2:, 0, 3] += 0.25
+    assert graph._jumped(BAState(turning, start.disparity, start.intrinsics),
+                         BAState(grown, start.disparity, start.intrinsics)) is None

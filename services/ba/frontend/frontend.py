@@ -113,7 +113,8 @@ class Frontend:
             self._calibrate_focal()
         self._add_proximity(k)
         window = self._window()
-        g.run(window, g.pairs(window, self.params.graph.temporal_radius), self._ba_params(window))
+        if g.run(window, g.pairs(window, self.params.graph.temporal_radius), self._ba_params(window)) is None:
+            window = self._drop_unconstrained(window)
         updated = set(window)
         removed = self._remove_redundant()
         if removed is not None:
@@ -270,6 +271,24 @@ class Frontend:
         dist = edges.induced_flow(state.poses, state.disparity, g.intrinsics, ii, torch.full_like(ii, last))
         chosen = edges.proximity_pairs(k, cands, dist.cpu(), gp)
         g.proximity |= {(g.seqs[a], g.seqs[b]) for a, b in chosen}
+
+    def _drop_unconstrained(self, window: list[int]) -> list[int]:
+        """A BA result refused because one keyframe's step jumped: that keyframe's flow does not constrain its
+        pose (under rotation its baseline is tiny), and while it stays every later BA is refused the same way
+        (hand-held yaw: 22 of 27). An interior one becomes a frame again and the BA runs once more; the newest
+        waits until a later keyframe makes it interior. Returns the window after."""
+        g = self.graph
+        seq = g.jumped_seq
+        if seq is None or seq not in g.seqs or g.index(seq) in (window[0], len(g) - 1):
+            return window
+        k = g.index(seq)
+        logger.info("keyframe the BA cannot constrain turned into a frame", extra={"seq": seq})
+        self.frames.add(FrameRecord(seq, g.stamps[k], g.images[k]))
+        g.remove(k)
+        self.frames.forget_targets(seq)
+        window = self._window()
+        g.run(window, g.pairs(window, self.params.graph.temporal_radius), self._ba_params(window))
+        return window
 
     def _remove_redundant(self) -> list[int] | None:
         """If the second-newest keyframe barely moved from the one before, make it a frame again.

@@ -73,6 +73,7 @@ class KeyframeGraph:
         # near road and parked cars of a car doing 0.8 m/frame (KITTI 07), and the scale collapses.
         self.predict_flow = False
         self.max_step_growth = max_step_growth  # see _jumped
+        self.jumped_seq: int | None = None  # the keyframe whose step made the last BA result implausible
 
     def __len__(self) -> int:
         return len(self.seqs)
@@ -168,34 +169,43 @@ class KeyframeGraph:
             prior = torch.stack([zero if self.priors[k] is None else self.priors[k] for k in window]).to(dev)
             mask = (prior > 0).to(torch.float64)
         start = self.stacked(window)
+        self.jumped_seq = None
         try:
             bounds = (self.focal_range[0] * self.first_focal, self.focal_range[1] * self.first_focal)
             result = run_ba(start, BAProblem(ii, jj, targets, conf, codes, prior, mask, bounds), params)
         except (RuntimeError, IndexError) as exc:  # a degenerate window (singular or non-finite): keep its state
             logger.warning("BA failed; window state kept", extra={"keyframes": len(window), "error": str(exc)})
             return None
-        if not self._plausible(start, result.state):
+        if not self._plausible(start, result.state, [self.seqs[k] for k in window]):
             logger.warning("BA result rejected (non-finite or a keyframe step jumped); window state kept",
                            extra={"keyframes": len(window), "focal": float(result.state.intrinsics[0])})
             return None
         self._store(window, result, ii, conf)
         return result
 
-    def _plausible(self, start: BAState, state: BAState) -> bool:
+    def _plausible(self, start: BAState, state: BAState, window_seqs: list[int]) -> bool:
         finite = all(bool(torch.isfinite(t).all()) for t in (state.poses, state.disparity, state.intrinsics))
-        return finite and not self._jumped(start, state)
+        if not finite:
+            return False
+        jumped = self._jumped(start, state)
+        if jumped is not None:
+            self.jumped_seq = window_seqs[jumped]
+        return jumped is None
 
-    def _jumped(self, start: BAState, state: BAState) -> bool:
+    def _jumped(self, start: BAState, state: BAState) -> int | None:
         """A keyframe whose flow constrains nothing (all edges lost) can fly off along the free direction of its
         pose; one such step, kept, would blow up every later constant-velocity prediction. A result is refused
         when any step between consecutive keyframes grows beyond ``max_step_growth`` times its length at the start
-        (per step: a whole trajectory's steps differ by more than that between turning and driving)."""
+        (per step: a whole trajectory's steps differ by more than that between turning and driving). Returns the
+        window position of the keyframe that ends the step that grew most, or None."""
         if len(start.poses) < 3:
-            return False
+            return None
         before = (start.poses[1:, :3, 3] - start.poses[:-1, :3, 3]).norm(dim=-1)
         after = (state.poses[1:, :3, 3] - state.poses[:-1, :3, 3]).norm(dim=-1)
-        floor = 1e-3 * float(before.median())  # a keyframe pair at one place may move apart a little
-        return bool((after > self.max_step_growth * before.clamp_min(floor)).any())
+        floor = float(before.median())  # a step may grow to max_step_growth x the window's median step: under
+        # rotation a step that starts near zero legitimately grows (hand-held yaw: 22 of 27 BA results refused)
+        growth = after / (self.max_step_growth * before.clamp_min(floor))
+        return int(growth.argmax()) + 1 if bool((growth > 1).any()) else None
 
     def _store(self, window: list[int], result: BAResult, ii: torch.Tensor, conf: torch.Tensor) -> None:
         state = result.state
