@@ -329,33 +329,13 @@ class Frontend:
         return update
 
     def _calibrate_focal(self) -> None:
-        """Once the map has ``focal_after`` keyframes, start it again from several focal guesses (each with the
-        focal free) and keep the lowest BA cost, the map as it is (adjusted the same way) included. Two keyframes
-        cannot tell focal lengths apart, six with rotation can; and incremental BA from a guess far above the
-        truth runs further away (hand-held desk, 83 deg camera from the 60 deg guess: to the upper bound;
-        restarted: 428 px, true 420.5). A start whose focal ends at a bound is not one the data determined
-        (forward motion: KITTI's restarts fall to the lower bound at a lower cost) and is not taken. Frames are
-        aligned again (a new scale and focal); their poses go out revised."""
-        g, p = self.graph, self.params
+        """Once, at ``focal_after`` keyframes: the multi-start focal calibration (:func:`init.calibrate_focal`);
+        when a restart won, the map has a new scale and focal and every frame is aligned again."""
+        p = self.params
         self._calibrated = True
         ba = dataclasses.replace(p.ba, optimise_focal=True, iterations=p.init.iterations)
-        everything = list(range(len(g)))
-        result = g.run(everything, edges.temporal_pairs(everything, 2), ba)
-        best = (float("inf") if result is None else float(result.costs[-1]), None, g.snapshot())  # the map as is
-        aspect = float(g.intrinsics[1] / g.intrinsics[0])
-        low, high = (r * g.first_focal for r in g.focal_range)
-        for ratio in p.focal_restarts:
-            g.intrinsics = g.intrinsics.clone()
-            g.intrinsics[0], g.intrinsics[1] = g.first_focal * ratio, g.first_focal * ratio * aspect
-            cost = init.start_map(g, p.init, ba, p.motion, force=True)
-            focal = float(g.intrinsics[0])
-            if cost is not None and cost < best[0] and low * 1.02 < focal < high / 1.02:
-                best = (cost, ratio, g.snapshot())
-        g.restore(best[2])
-        if best[1] is not None:
+        if init.calibrate_focal(self.graph, p.init, ba, p.motion, p.focal_restarts) is not None:
             self.frames.unanchor()
-        logger.info("focal calibrated", extra={"keyframes": len(g), "cost": best[0], "restart": best[1],
-                                               "focal_grid": round(float(g.intrinsics[0]), 3)})
 
     def _slide_init_window(self) -> None:
         """A two-view start that fails although the first and newest keyframe have parallax will not succeed
