@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from frontend import run_frontend  # noqa: E402  (bench/frontend.py, the same per-frame path)
@@ -63,14 +64,6 @@ class Motion:
     roll: np.ndarray
 
 
-def _rot(axis: int, deg: np.ndarray | float) -> np.ndarray:
-    c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
-    i, j = [(1, 2), (0, 2), (0, 1)][axis]
-    r = np.eye(3)
-    r[i, i], r[i, j], r[j, i], r[j, j] = c, -s, s, c
-    return r
-
-
 def _poses(m: Motion) -> np.ndarray:
     """world_from_cam (n, 4, 4): looking along +y at the start, yaw about world up, pitch and roll about the
     camera's own x and z axes."""
@@ -78,7 +71,9 @@ def _poses(m: Motion) -> np.ndarray:
     for i, p in enumerate(m.position):
         base = look_at(p, p + np.array([0.0, 1.0, 0.0]))
         out[i] = base
-        out[i, :3, :3] = _rot(2, m.yaw[i]) @ base[:3, :3] @ _rot(0, m.pitch[i]) @ _rot(2, m.roll[i])
+        yaw = Rotation.from_euler("z", m.yaw[i], degrees=True).as_matrix()
+        tilt = Rotation.from_euler("XZ", [m.pitch[i], m.roll[i]], degrees=True).as_matrix()  # intrinsic: camera x, then z
+        out[i, :3, :3] = yaw @ base[:3, :3] @ tilt
     return out
 
 

@@ -213,7 +213,7 @@ def calibrate_focal(graph: KeyframeGraph, params: InitParams, ba_params: BAParam
     """Start the map again from ``ratios`` x the focal guess (``ba_params`` with the focal free) and keep the
     lowest BA cost, the map as it is (adjusted the same way) included. Returns the winning ratio, or None when the
     map as it was won. Two keyframes cannot tell focal lengths apart, six with rotation can; and incremental BA
-    from a guess far above the truth runs further away (hand-held desk, 83 deg camera from the 60 deg guess: to the
+    started far above the true focal runs further away (hand-held desk, 83 deg camera from the 60 deg guess: to the
     upper bound; restarted: 429 px, true 420.5). A start whose focal ends at a bound is not one the data
     determined (forward motion: KITTI's restarts fall to the lower bound at a lower cost) and is not taken."""
     everything = list(range(len(graph)))
