@@ -67,9 +67,10 @@ class FrontendRun:
 
 def run_frontend(frames: list[SourceFrame], focal: float | None = None,
                  kf_threshold: float = KeyframeParams.threshold_grid_px, track: bool = False,
-                 verbose: bool = False, progress: bool = True) -> FrontendRun:
+                 verbose: bool = False, progress: bool = True, live: bool = False) -> FrontendRun:
     """``frames`` through the keyframe selector and the frontend as the pipeline does (see the module docstring).
-    ``focal``: the start focal in source pixels (default: the 60 deg prior, i.e. no calibration)."""
+    ``focal``: the start focal in source pixels (default: the 60 deg prior, i.e. no calibration). ``live``: keyframes
+    flagged real-time, as a live camera's are (mapping's cheaper settings, FrontendParams.live_*)."""
     frontend = Frontend(BaSettings().frontend_params(), "cpu")
     selector = KeyframeSelector(KeyframeParams(threshold_grid_px=kf_threshold))
     n_kf, ba_seconds, t_start = 0, 0.0, time.perf_counter()
@@ -101,7 +102,8 @@ def run_frontend(frames: list[SourceFrame], focal: float | None = None,
                 if tracked[0] in g.seqs:
                     guess = g.poses[g.index(tracked[0])] @ tracked[1]
             t0 = time.perf_counter()
-            keep(frontend.add_keyframe(KeyframeInput(frame.index, frame.t_ns, work, k_work, pose_guess=guess)))
+            keep(frontend.add_keyframe(KeyframeInput(frame.index, frame.t_ns, work, k_work, pose_guess=guess,
+                                                             realtime=live)))
             ba_seconds += time.perf_counter() - t0
             n_kf += 1
             if tracker is not None and (ref := frontend.reference()) is not None:
@@ -131,6 +133,7 @@ def main() -> None:
     parser.add_argument("--verbose", action="store_true", help="print every keyframe's last steps")
     parser.add_argument("--out", type=Path, default=None, help="write the TUM trajectory here")
     parser.add_argument("--track", action="store_true", help="pose every frame by tracking first (the live path)")
+    parser.add_argument("--live", action="store_true", help="keyframes flagged real-time (mapping's live settings)")
     args = parser.parse_args()
     tune_malloc_for_tensors()  # as the ba service does
     torch.set_num_threads(args.threads)
@@ -138,7 +141,7 @@ def main() -> None:
     setup_logging("bench-frontend", LogSettings(level="WARNING"))
     frames = [f for f in open_source(args.source).frames() if isinstance(f, SourceFrame)]
     frames = frames[args.first:][: args.max_frames]
-    run = run_frontend(frames, args.focal, args.kf_threshold, args.track, args.verbose)
+    run = run_frontend(frames, args.focal, args.kf_threshold, args.track, args.verbose, live=args.live)
     est = run.trajectory()
     poses = est.world_from_cam
     print(f"frames {len(frames)}  posed {len(run.latest)}  keyframes {run.keyframes} (graph {run.graph_keyframes})")

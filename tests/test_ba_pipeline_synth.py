@@ -6,6 +6,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+import torch
 
 from services.ba.frontend.frontend import FrameInput, Frontend, KeyframeInput
 from services.common.schema import Eos, FrameLite, Keyframe, Message
@@ -93,3 +94,63 @@ def test_orbit_trajectory_every_frame_posed_and_accurate():
     assert kf.kf_seqs.tolist() == sorted(kf.kf_seqs.tolist()) and len(kf.kf_seqs) >= 8
     assert kf.disparities.shape == (len(kf.updated_seqs), 48, 64) and np.all(kf.disparities > 0)
     assert np.all((kf.static_weights >= 0) & (kf.static_weights <= 1))
+
+
+def feed_live(fe: Frontend, msg: Keyframe | FrameLite):
+    """As :func:`feed`, the keyframes flagged real-time (a live camera: mapping's cheaper edge flows)."""
+    if isinstance(msg, Keyframe):
+        return fe.add_keyframe(KeyframeInput(msg.seq, msg.t_ns, msg.image, msg.intrinsics, msg.codes, realtime=True))
+    return fe.add_frame(FrameInput(msg.seq, msg.t_ns, msg.image))
+
+
+def test_a_live_stream_keeps_its_world_scale_through_the_focal_calibration():
+    """The focal calibration starts the map again from other focal guesses; the winner's scale is arbitrary (a
+    two-view start has |t| = 1). Poses tracking already published, its relative poses and carried-over depth are
+    in the old map's scale, so the restarted map is put in that scale: keyframe positions before and after the
+    calibration agree to the calibration's own refinement, not to a factor. Live keyframes' edge flows run at half
+    size, and the trajectory stays within 1 % of its length."""
+    world, msgs = synth_stream(n_frames=60, rendered=36, every=3, focal_factor=1.5)
+    fe = Frontend()
+    before: dict[int, np.ndarray] = {}
+    after: dict[int, np.ndarray] = {}
+    for msg in msgs[:-1]:
+        up = feed_live(fe, msg)
+        if isinstance(msg, Keyframe) and up.graph is not None:
+            (after if fe._calibrated else before).clear()
+            (after if fe._calibrated else before).update(zip(up.graph.kf_seqs.tolist(), up.graph.poses))
+            if fe._calibrated and len(after) > len(before):
+                break
+    assert fe._calibrated and fe.graph.flow_downscale == 2
+    common = sorted(set(before) & set(after))[1:]
+    ratio = np.array([np.linalg.norm(after[s][:3, 3]) / np.linalg.norm(before[s][:3, 3]) for s in common])
+    print(f"keyframe distance from the first, after / before the calibration: {np.round(ratio, 3)}")
+    assert np.all(np.abs(ratio - 1) < 0.1)
+    fe2 = Frontend()
+    for msg in msgs[:-1]:
+        feed_live(fe2, msg)
+    final = fe2.finish()
+    rmse, length = ate_of(world, final.poses.frame_seqs, final.poses.poses)
+    print(f"live flags: ATE {rmse:.4f} m over {length:.2f} m")
+    assert rmse < 0.01 * length
+
+
+def test_a_frame_tracked_against_an_unmapped_keyframe_keeps_its_tracked_pose():
+    """Mapping behind a live camera: tracking posed a frame against a keyframe mapping merged or has not reached.
+    The frame is anchored to the mapped keyframe before it where tracking put it (no flow spent on it), and moves
+    with that keyframe from then on."""
+    world, msgs = synth_stream(n_frames=60, rendered=20, every=3)
+    fe = Frontend()
+    for msg in msgs[:-1]:
+        if isinstance(msg, Keyframe):
+            fe.add_keyframe(KeyframeInput(msg.seq, msg.t_ns, msg.image, msg.intrinsics, msg.codes, realtime=True))
+    assert fe.initialised
+    seq = msgs[-2].seq + 1
+    tracked = fe.graph.poses[-1].clone()
+    tracked[:3, 3] += torch.tensor([0.01, 0.0, 0.02], dtype=torch.float64)
+    lite = next(m for m in msgs if isinstance(m, FrameLite))
+    up = fe.add_frame(FrameInput(seq, msgs[-2].t_ns + 1, lite.image, (10_000, torch.eye(4, dtype=torch.float64)),
+                                 tracked_world=tracked))
+    assert up.poses is None  # its pose went out when it was tracked
+    record = fe.frames.frames[seq]
+    assert record.anchor == fe.graph.seqs[-1] and record.targets == {}
+    torch.testing.assert_close(fe.frames.pose(fe.graph, seq), tracked)

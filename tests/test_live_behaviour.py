@@ -40,6 +40,16 @@ def test_a_realtime_stream_is_posed_while_the_backbone_lags(tmp_path):
     assert summary["codes_skipped"] >= 1  # stale keyframes went without codes rather than hold tracking back
     assert summary["drops"]["ba"] == 0 and summary["drops"]["mapstore"] == 0
     assert summary["ate_rmse_sim3"] is not None
+    # what a live consumer saw: every frame's first pose (TUM) and, per frame, its latency and who posed it
+    out = tmp_path / "realtime"
+    rows = [line.split(",") for line in (out / "frames.csv").read_text().splitlines()[1:]]
+    posed = [r for r in rows if r[3]]
+    assert len(posed) == round(summary["posed_fraction"] * summary["frames_read"])
+    assert {r[3] for r in posed} <= {"tracked", "mapped"} and any(r[3] == "tracked" for r in posed)
+    latencies = sorted(float(r[2]) for r in posed)
+    assert latencies[-1] == pytest.approx(summary["pose_latency_ms"]["max"], abs=0.2)
+    live = np.loadtxt(out / "trajectory_live.txt")
+    assert live.shape == (len(posed), 8)
 
 
 @pytest.mark.slow

@@ -96,16 +96,10 @@ def handle_keyframe(state: BaState, msg: Keyframe, cfg: BaSettings) -> Outputs:
         log.warning("codes of an unknown PCA basis left out of BA", extra={
             "stream": msg.stream, "seq": msg.seq, "pca_version": native.version, "current": state.pca_version})
     update = state.frontend.add_keyframe(KeyframeInput(msg.seq, msg.t_ns, msg.image, np.asarray(msg.intrinsics),
-                                                       codes, msg.disparity_prior, native, guess))
+                                                       codes, msg.disparity_prior, native, guess, msg.realtime))
     state.keyframes += 1
     state.last_seq = max(state.last_seq, msg.seq)
     return _outputs(state, msg, update, final=False)
-
-
-def _tracked(state: BaState, seq: int) -> tuple[int, torch.Tensor] | None:
-    """Tracking's anchor of frame ``seq``: (keyframe seq, keyframe_from_cam); None when tracking has not posed it."""
-    anchor = _take_anchor(state, seq)
-    return None if anchor is None else anchor[:2]
 
 
 def _pose_guess(state: BaState, seq: int) -> torch.Tensor | None:
@@ -158,13 +152,14 @@ def handle_frame_lite(state: BaState, msg: FrameLite | Keyframe, cfg: BaSettings
     pose stands until then). Real time: anchored where tracking posed it, or interpolated between its keyframes
     when tracking did not; mapping spends no flow on frames, it has no time to spare."""
     state.last_seq = max(state.last_seq, msg.seq)
-    anchor = _tracked(state, msg.seq)  # taken either way, so the table only holds frames still on their way
-    tracked = anchor if msg.realtime else None
+    anchor = _take_anchor(state, msg.seq)  # taken either way, so the table only holds frames still on their way
+    tracked = anchor[:2] if msg.realtime and anchor is not None else None
+    world = anchor[2] if msg.realtime and anchor is not None else None
     # a live frame tracking did not pose (before the map started, too little flow, or dropped to keep tracking's
     # latency bounded) is posed between its keyframes by time alone: aligning it by flow would put mapping
     # behind the camera
     cheap = msg.realtime and anchor is None
-    update = state.frontend.add_frame(FrameInput(msg.seq, msg.t_ns, msg.image, tracked, cheap))
+    update = state.frontend.add_frame(FrameInput(msg.seq, msg.t_ns, msg.image, tracked, cheap, world))
     return _outputs(state, msg, update, final=False)
 
 

@@ -61,6 +61,10 @@ class BaSettings(BASettings):
     frame (posed, not a BA keyframe) instead of queueing without bound. Lossless streams map every keyframe."""
     realtime_max_merged: int = 3
     """At most this many keyframes in a row are merged; then one is mapped whatever the backlog."""
+    live_flow_downscale: int = FrontendParams.live_flow_downscale
+    """Real-time streams: keyframe edge flows at 1/this of the working size (mapping keeps up with a live camera)."""
+    live_iterations: int = FrontendParams.live_iterations
+    """Real-time streams: LM iterations of the window BA per keyframe."""
     mapping_min_seconds: float = 0.0
     """Each keyframe's mapping takes at least this long: a slow CPU on demand (tests of back-pressure)."""
     tracking_backlog: int = 3
@@ -93,4 +97,5 @@ class BaSettings(BASettings):
                                          max_keyframes=self.init_max_keyframes),
             motion=MotionParams(huber=self.motion_huber), ba=self.ba_params(),
             global_ba=self.ba_params(global_ba=True), flow=self.flow_params(), focal_after=self.focal_after,
-            focal_until=self.focal_until, keep_keyframes=self.keep_keyframes)
+            focal_until=self.focal_until, keep_keyframes=self.keep_keyframes,
+            live_flow_downscale=self.live_flow_downscale, live_iterations=self.live_iterations)

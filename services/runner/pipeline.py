@@ -97,6 +97,7 @@ class _Observer:
         self.mapped: set[int] = set()  # frames whose pose mapping has revised (a later tracking pose never wins)
         self.seen_at: dict[int, float] = {}  # frame seq → monotonic time the runner saw it on the bus
         self.first_pose: dict[int, tuple[float, int, object]] = {}  # seq → (arrival, stamp, pose) of its first pose
+        self.first_tracked: set[int] = set()  # frames whose first pose came from tracking (not mapping)
         self.eos: dict[str, Eos] = {}
         self.eos_at: dict[str, float] = {}
         self.done = threading.Event()
@@ -117,6 +118,8 @@ class _Observer:
                 for seq, stamp, pose in zip(msg.frame_seqs, msg.stamps_ns, msg.poses):
                     if int(seq) not in self.first_pose:
                         self.first_pose[int(seq)] = (now, int(stamp), pose)
+                        if msg.tracked:
+                            self.first_tracked.add(int(seq))
                     if msg.tracked and int(seq) in self.mapped:
                         continue
                     self.poses[int(seq)] = (int(stamp), pose)
@@ -207,7 +210,9 @@ def run_pipeline(cfg: RunSettings, on_outputs: Callable[[RunReport], None] | Non
         with observer.lock:  # late messages may still arrive (a --serve run, a signal)
             _fill_report(report, observer, monitor)
             poses, first_poses = dict(observer.poses), dict(observer.first_pose)
-        report.outputs = _write_outputs(cfg, report, poses, first_poses)
+            seen_at, first_tracked = dict(observer.seen_at), set(observer.first_tracked)
+        live = _write_live(cfg, first_poses, seen_at, first_tracked)
+        report.outputs = _write_outputs(cfg, report, poses, first_poses, live)
         if on_outputs is not None:
             on_outputs(report)
 
@@ -419,8 +424,33 @@ def _trajectory(poses: dict[int, tuple]) -> Trajectory:
                       np.stack([np.asarray(poses[s][-1], np.float64) for s in seqs]))
 
 
+def _write_live(cfg: RunSettings, first_poses: dict[int, tuple[float, int, object]], seen_at: dict[int, float],
+                first_tracked: set[int]) -> list[str]:
+    """What a live consumer saw: ``trajectory_live.txt`` (TUM, each frame's first pose as it was published) and
+    ``frames.csv`` (per frame seen on the bus: its stamp, the latency from the frame to its first pose, and whether
+    tracking or mapping gave that pose)."""
+    if not first_poses and not seen_at:
+        return []
+    written = []
+    if first_poses:
+        path = cfg.out / "trajectory_live.txt"
+        write_tum(path, _trajectory(first_poses))
+        written.append(str(path))
+    path = cfg.out / "frames.csv"
+    with path.open("w") as out:
+        out.write("seq,stamp_s,latency_ms,first_pose\n")
+        for seq in sorted(set(seen_at) | set(first_poses)):
+            first = first_poses.get(seq)
+            latency = "" if first is None or seq not in seen_at else f"{max(0.0, first[0] - seen_at[seq]) * 1e3:.1f}"
+            stamp = "" if first is None else f"{first[1] / 1e9:.6f}"
+            source = "" if first is None else ("tracked" if seq in first_tracked else "mapped")
+            out.write(f"{seq},{stamp},{latency},{source}\n")
+    written.append(str(path))
+    return written
+
+
 def _write_outputs(cfg: RunSettings, report: RunReport, poses: dict[int, tuple[int, object]],
-                   first_poses: dict[int, tuple[float, int, object]]) -> list[str]:
+                   first_poses: dict[int, tuple[float, int, object]], also_written: list[str] = ()) -> list[str]:
     """trajectory.txt (the latest pose of every frame), the ATE of those and of each frame's first pose (what a
     live consumer saw at the time) when the source has ground truth, and summary.json."""
     written = []
@@ -435,6 +465,7 @@ def _write_outputs(cfg: RunSettings, report: RunReport, poses: dict[int, tuple[i
             report.ate_rmse_sim3, report.ate_pairs = ate.rmse, ate.n_pairs
         if ate_live is not None:
             report.ate_first_poses, report.ate_first_poses_pairs = ate_live.rmse, ate_live.n_pairs
+    written += list(also_written)
     written += [str(cfg.out / name) for name in ("map.ply", "cameras.txt") if (cfg.out / name).is_file()]
     summary = cfg.out / "summary.json"
     summary.write_text(json.dumps(asdict(report) | {"outputs": written + [str(summary)]}, indent=2, default=str))

@@ -40,6 +40,7 @@ class KeyframeInput(NamedTuple):
     disparity_prior: np.ndarray | None = None  # (H/8, W/8) 1/m, 0 = none
     native_codes: NativeCodes | None = None  # the codes as received, for KeyframeGraph.recode on a new basis
     pose_guess: torch.Tensor | None = None  # (4, 4) world_from_cam from tracking: a better start than constant velocity
+    realtime: bool = False  # from a live stream: mapping must keep up (cheaper edge flows, FrontendParams.live_*)
 
 
 class FrameInput(NamedTuple):
@@ -48,6 +49,7 @@ class FrameInput(NamedTuple):
     image: np.ndarray  # (h', w') uint8 grey (or RGB), same aspect ratio as the working image
     tracked: tuple[int, torch.Tensor] | None = None  # (keyframe seq, (4, 4) keyframe_from_cam) from tracking
     interpolate_only: bool = False  # pose it between its keyframes by time, spend no flow on it
+    tracked_world: torch.Tensor | None = None  # (4, 4) world_from_cam from tracking, when its keyframe is not mapped
 
 
 class GraphUpdate(NamedTuple):
@@ -86,6 +88,7 @@ class Frontend:
         self._focal = 0.0
         self._size = (0, 0)
         self._calibrated = False  # the multi-start focal calibration ran (see _calibrate_focal)
+        self._live = False  # the newest keyframe came from a real-time stream
 
     # --- inputs ----------------------------------------------------------------------------------------
     def add_keyframe(self, kf: KeyframeInput) -> Update:
@@ -97,6 +100,8 @@ class Frontend:
         if kf.pose_guess is not None and self.initialised and bool(torch.isfinite(kf.pose_guess).all()):
             pose = kf.pose_guess.to(self.device, torch.float64)
         k = g.append(kf.seq, kf.t_ns, grey, codes, prior, pose, disp, kf.native_codes)
+        self._live = kf.realtime
+        g.flow_downscale = self.params.live_flow_downscale if kf.realtime else 1
         try:
             return self._integrate(k)
         except Exception:
@@ -148,6 +153,14 @@ class Frontend:
             # tracking already aligned it to a keyframe: anchored there, it moves with every BA of that keyframe
             # and needs no flow of its own (its pose went out when it was tracked)
             record.anchor, record.anchor_from_cam = frame.tracked[0], frame.tracked[1].to(self.device)
+            self.frames.add(record)
+            return Update()
+        if frame.tracked_world is not None and self.initialised and self.graph.seqs[0] < frame.seq:
+            # tracked against a keyframe mapping merged or has not mapped yet (a live camera, mapping behind):
+            # anchored to the mapped keyframe before it where tracking put it, no flow spent
+            before = max(k for k, s in enumerate(self.graph.seqs) if s < frame.seq)
+            record.anchor = self.graph.seqs[before]
+            record.anchor_from_cam = se3.inverse(self.graph.poses[before]) @ frame.tracked_world.to(self.device)
             self.frames.add(record)
             return Update()
         self.frames.add(record)
@@ -310,7 +323,10 @@ class Frontend:
         return [g.seqs[i] for i in self._window()]
 
     def _ba_params(self, window: list[int], base=None):
-        base = base or self.params.ba
+        if base is None:
+            base = self.params.ba
+            if self._live:
+                base = dataclasses.replace(base, iterations=self.params.live_iterations)
         focal = (base.optimise_focal and len(window) >= self.params.focal_after
                  and len(self.graph) <= self.params.focal_until)
         return dataclasses.replace(base, optimise_focal=focal)
@@ -334,7 +350,9 @@ class Frontend:
         p = self.params
         self._calibrated = True
         ba = dataclasses.replace(p.ba, optimise_focal=True, iterations=p.init.iterations)
-        if init.calibrate_focal(self.graph, p.init, ba, p.motion, p.focal_restarts) is not None:
+        if init.calibrate_focal(self.graph, p.init, ba, p.motion, p.focal_restarts) is not None and not self._live:
+            # the restarted map is in the scale of the old one (init._keep_scale), so a live stream's frames keep
+            # their anchors: their poses went out when tracked, and aligning them all again would stall mapping
             self.frames.unanchor()
 
     def _slide_init_window(self) -> None:

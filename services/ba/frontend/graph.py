@@ -2,8 +2,10 @@
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 from typing import Callable, NamedTuple
 
+import cv2
 import numpy as np
 import torch
 
@@ -74,6 +76,11 @@ class KeyframeGraph:
         self.predict_flow = False
         self.max_step_growth = max_step_growth  # see _jumped
         self.jumped_seq: int | None = None  # the keyframe whose step made the last BA result implausible
+        # Edges whose flow is computed from now on use images at 1/flow_downscale of the working size (a live
+        # camera's mapping: 4x less DIS per edge); grid coordinates come out the same, so cached targets of
+        # either size mix in one BA
+        self.flow_downscale = 1
+        self._small: dict[int, np.ndarray] = {}  # seq -> grey image at 1/flow_downscale
 
     def __len__(self) -> int:
         return len(self.seqs)
@@ -114,6 +121,7 @@ class KeyframeGraph:
             del store[k]
         self.proximity = {e for e in self.proximity if seq not in e}
         self._cache = {e: t for e, t in self._cache.items() if seq not in e}
+        self._small.pop(seq, None)
 
     def recode(self, convert: Callable[[NativeCodes], torch.Tensor | None]) -> list[int]:
         """Replace every keyframe's BA codes by ``convert`` of the codes it arrived with (a new PCA version: ARK and
@@ -128,17 +136,35 @@ class KeyframeGraph:
         """Cached flow targets of keyframe ``i`` into keyframe ``j`` (positions)."""
         key = (self.seqs[i], self.seqs[j])
         if key not in self._cache:
+            scale = self.flow_downscale
             fwd = bwd = None
             if self.predict_flow:
-                fwd, bwd = (induced_flow_field(self.poses[a], self.poses[b], self.disparity[a], self.intrinsics, GRID)
-                            for a, b in ((i, j), (j, i)))
+                fwd, bwd = (induced_flow_field(self.poses[a], self.poses[b], self.disparity[a], self.intrinsics,
+                                               GRID // scale) for a, b in ((i, j), (j, i)))
+            # at 1/scale a grid cell is grid/scale pixels and grid coordinates come out the same; fb_sigma is
+            # in the pixels of that size
+            params = self.flow_params if scale == 1 else replace(
+                self.flow_params, grid=self.flow_params.grid // scale, fb_sigma=self.flow_params.fb_sigma / scale)
             # both directions at once: the reverse edge is (almost) always asked for too (temporal edges come
             # in pairs), and its two flows are these
-            there, back = core_flow.pair_targets(self.images[i], self.images[j], self.flow_params, fwd, bwd)
+            there, back = core_flow.pair_targets(self._image(i), self._image(j), params, fwd, bwd)
             self._cache[key] = Targets(torch.from_numpy(there.target), torch.from_numpy(there.confidence))
             self._cache.setdefault((self.seqs[j], self.seqs[i]),
                                    Targets(torch.from_numpy(back.target), torch.from_numpy(back.confidence)))
         return self._cache[key]
+
+    def _image(self, k: int) -> np.ndarray:
+        """Keyframe ``k``'s grey image at 1/flow_downscale of the working size."""
+        if self.flow_downscale == 1:
+            return self.images[k]
+        seq = self.seqs[k]
+        small = self._small.get(seq)
+        if small is None or small.shape[0] * self.flow_downscale != self.images[k].shape[0]:
+            height, width = self.images[k].shape[:2]
+            small = cv2.resize(self.images[k], (width // self.flow_downscale, height // self.flow_downscale),
+                               interpolation=cv2.INTER_AREA)
+            self._small[seq] = small
+        return small
 
     def pairs(self, window: list[int], radius: int) -> list[tuple[int, int]]:
         """Directed edges (positions) inside ``window``: temporal ones and stored proximity ones."""

@@ -219,6 +219,7 @@ def calibrate_focal(graph: KeyframeGraph, params: InitParams, ba_params: BAParam
     everything = list(range(len(graph)))
     result = graph.run(everything, temporal_pairs(everything, 2), ba_params)
     best = (float("inf") if result is None else float(result.costs[-1]), None, graph.snapshot())
+    as_is = [p.clone() for p in graph.poses]
     aspect = float(graph.intrinsics[1] / graph.intrinsics[0])
     low, high = (r * graph.first_focal for r in graph.focal_range)
     for ratio in ratios:
@@ -229,9 +230,31 @@ def calibrate_focal(graph: KeyframeGraph, params: InitParams, ba_params: BAParam
         if cost is not None and cost < best[0] and low * 1.02 < focal < high / 1.02:
             best = (cost, ratio, graph.snapshot())
     graph.restore(best[2])
+    if best[1] is not None:
+        _keep_scale(graph, as_is)
     logger.info("focal calibrated", extra={"keyframes": len(graph), "cost": best[0], "restart": best[1],
                                            "focal_grid": round(float(graph.intrinsics[0]), 3)})
     return best[1]
+
+
+def _keep_scale(graph: KeyframeGraph, before: list[torch.Tensor]) -> None:
+    """A restarted map in the scale of the map it replaces (both start at the identity): the least-squares scale
+    between their camera centres, applied to translations and disparities. Poses already published, tracking's
+    relative poses and its carried-over depth stay in the same world frame instead of jumping by the restart's
+    arbitrary scale."""
+    new = torch.stack([p[:3, 3] for p in graph.poses])
+    old = torch.stack([p[:3, 3] for p in before]).to(new)
+    norm = float((new * new).sum())
+    if norm <= 0:
+        return
+    scale = float((old * new).sum()) / norm
+    if not scale > 0:
+        return
+    for k in range(len(graph)):
+        pose = graph.poses[k].clone()
+        pose[:3, 3] *= scale
+        graph.poses[k] = pose
+        graph.disparity[k] = graph.disparity[k] / scale
 
 
 def parallax(graph: KeyframeGraph) -> float:

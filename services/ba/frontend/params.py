@@ -69,6 +69,9 @@ class FrontendParams:
     # stream BA still use); older ones leave the graph with their frames, so memory does not grow with the stream.
     # KITTI 07 (90 keyframes): end-of-stream BA over all of them gives ATE 0.32 m, over the last 40 0.63 m
     # (bench/frontend.py; docs/BENCHMARKS.md)
+    live_flow_downscale: int = 2  # keyframes of a real-time stream get their edge flows at 1/this of the working
+    # size (DIS 52 -> 12 ms per flow on KITTI): a live camera's mapping must keep up with its keyframes
+    live_iterations: int = 3  # LM iterations of the window BA per real-time keyframe
     focal_range: tuple[float, float] = (0.36, 1.75)  # BA keeps the focal inside this x the first guess (60 deg
     # across the longer side): 115 deg to 36 deg, so 40-110 deg cameras fit. A bound constrains the focal; it never
     # throws a BA result away (the old refusal outside 0.6-1.6 x refused TartanAir's true 90 deg focal, 0.58 x)
