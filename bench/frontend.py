@@ -34,6 +34,7 @@ from services.ba.core import se3
 from services.ba.frontend.frontend import FrameInput, Frontend, KeyframeInput
 from services.ba.frontend.tracker import Tracker
 from services.ba.settings import BaSettings
+from services.ba.tracking import half_size
 from services.common.config import LogSettings
 from services.common.lifecycle import tune_malloc_for_tensors
 from services.common.logs import setup_logging
@@ -67,10 +68,12 @@ class FrontendRun:
 
 def run_frontend(frames: list[SourceFrame], focal: float | None = None,
                  kf_threshold: float = KeyframeParams.threshold_grid_px, track: bool = False,
-                 verbose: bool = False, progress: bool = True, live: bool = False) -> FrontendRun:
+                 verbose: bool = False, progress: bool = True, live: bool = False, map_lag: int = 0) -> FrontendRun:
     """``frames`` through the keyframe selector and the frontend as the pipeline does (see the module docstring).
     ``focal``: the start focal in source pixels (default: the 60 deg prior, i.e. no calibration). ``live``: keyframes
-    flagged real-time, as a live camera's are (mapping's cheaper settings, FrontendParams.live_*)."""
+    flagged real-time, as a live camera's are (mapping's cheaper settings, FrontendParams.live_*). ``map_lag``:
+    mapping runs this many keyframes behind tracking, as on a CPU too slow for it (with ``live``, keyframes mapped
+    while later ones wait leave their window BA to a later one, as the ba service does)."""
     frontend = Frontend(BaSettings().frontend_params(), "cpu")
     selector = KeyframeSelector(KeyframeParams(threshold_grid_px=kf_threshold))
     n_kf, ba_seconds, t_start = 0, 0.0, time.perf_counter()
@@ -81,7 +84,7 @@ def run_frontend(frames: list[SourceFrame], focal: float | None = None,
     latest: dict[int, tuple[int, np.ndarray]] = {}
     first: dict[int, tuple[int, np.ndarray]] = {}
     settings = BaSettings()
-    tracker = Tracker(settings.frontend_params().motion, settings.tracking_flow_params()) if track else None
+    tracker = settings.tracker() if track else None
 
     def keep(update) -> None:
         if update.poses is not None:
@@ -89,30 +92,45 @@ def run_frontend(frames: list[SourceFrame], focal: float | None = None,
                 latest[int(seq)] = (int(stamp), pose)
                 first.setdefault(int(seq), (int(stamp), pose))
 
+    queue: list[tuple] = []  # mapping's inbox: (frame, working grey, tracking's anchor, is keyframe)
+
+    def map_next() -> None:
+        nonlocal n_kf, ba_seconds
+        frame, work, anchor, is_kf = queue.pop(0)
+        if not is_kf:
+            lite = cv2.resize(work, (work.shape[1] // 2, work.shape[0] // 2), interpolation=cv2.INTER_AREA)
+            tracked = None if anchor is None else anchor[:2]
+            world = anchor[2] if anchor is not None and live else None
+            keep(frontend.add_frame(FrameInput(frame.index, frame.t_ns, lite, tracked, tracked_world=world)))
+            return
+        guess = None
+        if anchor is not None:  # as the ba service does: start mapping where tracking put it
+            g = frontend.graph
+            guess = g.poses[g.index(anchor[0])] @ anchor[1] if anchor[0] in g.seqs else anchor[2]
+        behind = live and any(item[3] for item in queue)
+        t0 = time.perf_counter()
+        keep(frontend.add_keyframe(KeyframeInput(frame.index, frame.t_ns, work, k_work, pose_guess=guess,
+                                                 realtime=live, defer_ba=behind)))
+        ba_seconds += time.perf_counter() - t0
+        n_kf += 1
+        if tracker is not None and (ref := frontend.reference()) is not None:
+            tracker.set_reference(ref)
+        if verbose:
+            _print_steps(frontend, frame.index, time.perf_counter() - t0)
+
     for n, frame in enumerate(tqdm(frames, unit="frame", disable=not progress)):
         work = to_grey(resize_to_working(frame.rgb, size))
-        tracked = _track(tracker, frontend, frame, work, first)
-        if selector.observe(work).is_keyframe or n == len(frames) - 1:
+        anchor = _track(tracker, frame, work, k_work, first)
+        is_kf = selector.observe(work).is_keyframe or n == len(frames) - 1
+        if is_kf:
             selector.set_reference(work)
-            guess = None
-            if tracked is not None:  # as the tracking thread does: move on to the keyframe, start mapping there
-                guess = torch.from_numpy(first[frame.index][1])
-                tracker.promote(frame.index, frame.t_ns, work, guess)
-                g = frontend.graph
-                if tracked[0] in g.seqs:
-                    guess = g.poses[g.index(tracked[0])] @ tracked[1]
-            t0 = time.perf_counter()
-            keep(frontend.add_keyframe(KeyframeInput(frame.index, frame.t_ns, work, k_work, pose_guess=guess,
-                                                             realtime=live)))
-            ba_seconds += time.perf_counter() - t0
-            n_kf += 1
-            if tracker is not None and (ref := frontend.reference()) is not None:
-                tracker.set_reference(ref)
-            if verbose:
-                _print_steps(frontend, frame.index, time.perf_counter() - t0)
-        else:
-            lite = cv2.resize(work, (work.shape[1] // 2, work.shape[0] // 2), interpolation=cv2.INTER_AREA)
-            keep(frontend.add_frame(FrameInput(frame.index, frame.t_ns, lite, tracked)))
+            if anchor is not None:  # as the tracking thread does: move on to the keyframe
+                tracker.promote(frame.index, frame.t_ns, work, anchor[2])
+        queue.append((frame, work, anchor, is_kf))
+        while queue and sum(item[3] for item in queue) > map_lag:
+            map_next()
+    while queue:
+        map_next()
     t0 = time.perf_counter()
     keep(frontend.finish())
     finish_seconds = time.perf_counter() - t0
@@ -134,6 +152,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=None, help="write the TUM trajectory here")
     parser.add_argument("--track", action="store_true", help="pose every frame by tracking first (the live path)")
     parser.add_argument("--live", action="store_true", help="keyframes flagged real-time (mapping's live settings)")
+    parser.add_argument("--map-lag", type=int, default=0, help="mapping runs this many keyframes behind tracking")
     args = parser.parse_args()
     tune_malloc_for_tensors()  # as the ba service does
     torch.set_num_threads(args.threads)
@@ -141,7 +160,8 @@ def main() -> None:
     setup_logging("bench-frontend", LogSettings(level="WARNING"))
     frames = [f for f in open_source(args.source).frames() if isinstance(f, SourceFrame)]
     frames = frames[args.first:][: args.max_frames]
-    run = run_frontend(frames, args.focal, args.kf_threshold, args.track, args.verbose, live=args.live)
+    run = run_frontend(frames, args.focal, args.kf_threshold, args.track, args.verbose, live=args.live,
+                       map_lag=args.map_lag)
     est = run.trajectory()
     poses = est.world_from_cam
     print(f"frames {len(frames)}  posed {len(run.latest)}  keyframes {run.keyframes} (graph {run.graph_keyframes})")
@@ -162,21 +182,24 @@ def main() -> None:
             print(f"ATE of the first (tracked) poses: sim3 rmse {at_once.rmse:.3f} m  pairs {at_once.n_pairs}")
     if args.out:
         write_tum(args.out, est)
+        if args.track:
+            write_tum(args.out.with_suffix(".first.txt"), run.trajectory(first=True))
 
 
-def _track(tracker: Tracker | None, frontend: Frontend, frame: SourceFrame, work: np.ndarray,
-           first: dict[int, tuple[int, np.ndarray]]) -> tuple[int, torch.Tensor] | None:
-    """The tracking thread's work for one frame: its pose at once, and the anchor mapping will use."""
+def _track(tracker: Tracker | None, frame: SourceFrame, work: np.ndarray, intrinsics: np.ndarray,
+           first: dict[int, tuple[int, np.ndarray]]) -> tuple[int, torch.Tensor, torch.Tensor] | None:
+    """The tracking thread's work for one frame: its pose at once, and the anchor mapping will use
+    (reference keyframe seq, reference_from_cam, world_from_cam)."""
     if tracker is None:
         return None
-    lite = cv2.resize(work, (work.shape[1] // 2, work.shape[0] // 2), interpolation=cv2.INTER_AREA)
-    out = tracker.track(frame.index, frame.t_ns, lite)
+    lite, lite_k = half_size(work, intrinsics)
+    out = tracker.track(frame.index, frame.t_ns, lite, lite_k)  # before the map: provisional rotation-only poses
     if out is None:
         return None
     first.setdefault(frame.index, (frame.t_ns, out.pose.numpy()))
     if not out.ok:
         return None
-    return out.ref_seq, se3.inverse(tracker.reference.pose) @ out.pose
+    return out.ref_seq, se3.inverse(tracker.reference.pose) @ out.pose, out.pose
 
 
 def _instrument() -> dict[str, list]:

@@ -107,3 +107,59 @@ def test_a_keyframe_mapping_keeps_up_with_is_not_promoted():
     out = tracker.track(3, f.t_ns, _grey(f.rgb, half=True))
     tracker.promote(3, f.t_ns, _grey(f.rgb, half=False), out.pose)  # mapping holds keyframe 0, the one before
     assert tracker.reference.seq == 0
+
+
+def test_before_the_map_frames_get_their_rotation_and_no_translation():
+    """A monocular camera has no translation until there is parallax, but its rotation is observable: before the
+    map starts the first frame is the world (identity) and each later one gets the rotation that maps the first
+    frame's bearings onto its own (rotating on the spot: the exact rotation to a fraction of a degree)."""
+    from services.synth.profiles import profile, profile_world
+    world = profile_world(profile("spin", n=20), 256, 192)
+    tracker = Tracker(MotionParams(), TRACKING_FLOW)
+    for i in range(0, 13, 3):
+        f = world.render(i)
+        small = _grey(f.rgb, half=True)
+        k = np.array([f.intrinsics[0] / 2, f.intrinsics[1] / 2, (f.intrinsics[2] + 0.5) / 2 - 0.5,
+                      (f.intrinsics[3] + 0.5) / 2 - 0.5])
+        out = tracker.track(i, f.t_ns, small, k)
+        assert out is not None and not out.ok and out.ref_seq == -1  # provisional: never anchored or promoted
+        assert torch.equal(out.pose[:3, 3], torch.zeros(3, dtype=torch.float64))
+        truth = np.linalg.inv(world.poses[0]) @ world.poses[i]
+        _, rot = _errors(out.pose, truth)
+        turned = math.degrees(math.acos(np.clip((np.trace(truth[:3, :3]) - 1) / 2, -1, 1)))
+        print(f"frame {i}: turned {turned:.2f} deg, provisional rotation error {rot:.3f} deg")
+        assert rot < 0.05 * turned + 0.1
+    tracker.set_reference(_reference(world, 12))  # the map started: tracking proper from now on
+    out = tracker.track(13, world.render(13).t_ns, _grey(world.render(13).rgb, half=True), k)
+    assert out.ref_seq == 12
+
+
+def test_a_carried_over_reference_is_corrected_by_what_mapping_found():
+    """Mapping behind: tracking promoted its own keyframes from a reference that mapping has since refined (here
+    the start reference was 5 cm off; its depth was right). When mapping's pose of keyframe 3 arrives, the
+    carried-over reference moves by the difference between mapping's and tracking's pose of keyframe 3, so the
+    next frame is tracked on the exact trajectory again; the same reference again changes nothing."""
+    world = synth.SynthWorld(synth.SynthConfig(n_frames=60, width=512, height=384, person=False, moved_chair=False))
+    tracker = Tracker(MotionParams(), TRACKING_FLOW)
+    off = torch.eye(4, dtype=torch.float64)
+    off[:3, 3] = torch.tensor([0.05, 0.0, 0.0], dtype=torch.float64)
+    start = _reference(world, 0)
+    tracker.set_reference(start._replace(pose=off @ start.pose))
+    for i in range(1, 10):
+        f = world.render(i)
+        out = tracker.track(i, f.t_ns, _grey(f.rgb, half=True))
+        if i % 3 == 0:
+            tracker.promote(i, f.t_ns, _grey(f.rgb, half=False), out.pose)
+    assert tracker.reference.seq == 9
+    f = world.render(10)
+    before, _ = _errors(tracker.track(10, f.t_ns, _grey(f.rgb, half=True)).pose, world.poses[10])
+    tracker.set_reference(_reference(world, 3))  # mapping's keyframe 3: two behind the newest
+    assert tracker.reference.seq == 9  # still the carried-over one, moved
+    corrected = tracker.reference.pose.clone()
+    tracker.set_reference(_reference(world, 3))
+    torch.testing.assert_close(tracker.reference.pose, corrected)
+    f = world.render(11)
+    out = tracker.track(11, f.t_ns, _grey(f.rgb, half=True))
+    trans, rot = _errors(out.pose, world.poses[11])
+    print(f"{before:.3f} m off before mapping's correction, {trans:.4f} m after")
+    assert before > 0.04 and trans < 0.025 and rot < 0.5

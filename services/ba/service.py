@@ -41,7 +41,6 @@ from services.common.schema import (Credit, Eos, FrameLite, Graph, Intrinsics, K
                                     PcaBasis, Poses)
 from services.ba.frontend.frontend import FrameInput, Frontend, KeyframeInput, Update
 from services.ba.frontend.graph import NativeCodes
-from services.ba.frontend.tracker import Tracker
 from services.ba.settings import BaSettings
 from services.ba.tracking import TrackingLoop
 
@@ -96,7 +95,8 @@ def handle_keyframe(state: BaState, msg: Keyframe, cfg: BaSettings) -> Outputs:
         log.warning("codes of an unknown PCA basis left out of BA", extra={
             "stream": msg.stream, "seq": msg.seq, "pca_version": native.version, "current": state.pca_version})
     update = state.frontend.add_keyframe(KeyframeInput(msg.seq, msg.t_ns, msg.image, np.asarray(msg.intrinsics),
-                                                       codes, msg.disparity_prior, native, guess, msg.realtime))
+                                                       codes, msg.disparity_prior, native, guess, msg.realtime,
+                                                       _defer(state, msg, cfg)))
     state.keyframes += 1
     state.last_seq = max(state.last_seq, msg.seq)
     return _outputs(state, msg, update, final=False)
@@ -145,6 +145,12 @@ def _merge(state: BaState, msg: Keyframe, cfg: BaSettings) -> bool:
     flow need them close enough)."""
     return (msg.realtime and state.frontend.initialised and state.keyframe_backlog >= cfg.realtime_keyframe_backlog
             and state.merged_in_a_row < cfg.realtime_max_merged)
+
+
+def _defer(state: BaState, msg: Keyframe, cfg: BaSettings) -> bool:
+    """Real time, keyframes waiting behind mapping: this one joins the graph aligned, its window BA left to a
+    later keyframe (the frontend bounds how many in a row)."""
+    return msg.realtime and state.keyframe_backlog >= cfg.realtime_defer_backlog
 
 
 def handle_frame_lite(state: BaState, msg: FrameLite | Keyframe, cfg: BaSettings) -> Outputs:
@@ -267,7 +273,7 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
 
     for name, kind in ((keys.KEYFRAME, Keyframe), (keys.FRAME_LITE, FrameLite)):
         bus.subscribe(topic(name), to_both, [kind])
-    tracking = TrackingLoop(Tracker(cfg.frontend_params().motion, cfg.tracking_flow_params()), bus, track_box, cfg.stream,
+    tracking = TrackingLoop(cfg.tracker(), bus, track_box, cfg.stream,
                             state.anchors, cfg.tracking_nice)
     tracking.start()
     bus.ready()

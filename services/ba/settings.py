@@ -56,10 +56,16 @@ class BaSettings(BASettings):
     """Huber threshold of motion-only alignment (grid px)."""
     keep_keyframes: int = FrontendParams.keep_keyframes
     """Keyframes held in memory; older ones leave with their frames (their last published poses are final)."""
-    realtime_keyframe_backlog: int = 2
+    realtime_defer_backlog: int = 1
+    """Real-time streams: when this many keyframes wait for mapping, the next one is only aligned and joins the
+    graph, its window BA left to a later keyframe (at most ``live_max_deferred`` in a row); every keyframe stays in
+    the graph, so keyframes stay close enough for their flow."""
+    live_max_deferred: int = FrontendParams.live_max_deferred
+    """Real-time streams: keyframes in a row that may leave their window BA to a later one."""
+    realtime_keyframe_backlog: int = 24
     """Real-time streams: when this many keyframes wait for mapping, the oldest is merged into the map as a
     frame (posed, not a BA keyframe) instead of queueing without bound. Lossless streams map every keyframe."""
-    realtime_max_merged: int = 3
+    realtime_max_merged: int = 1
     """At most this many keyframes in a row are merged; then one is mapped whatever the backlog."""
     live_flow_downscale: int = FrontendParams.live_flow_downscale
     """Real-time streams: keyframe edge flows at 1/this of the working size (mapping keeps up with a live camera)."""
@@ -74,6 +80,11 @@ class BaSettings(BASettings):
     """DIS preset of frame-rate tracking, at the preset's own finest scale (1 for medium): 13 ms per KITTI frame
     pair (half working size, both directions) against 53 ms at full scale as the window uses it; on the synthetic
     world 5 frames from the reference 1.2 cm / 0.16 deg against 0.7 cm / 0.06 deg (fast: 11 ms, 1.4 cm / 0.17 deg)."""
+    tracking_finest_scale: int | None = None
+    """DIS finest pyramid level of tracking's flow (None: the preset's own, 1 for medium)."""
+    tracking_promote_after: int = 1
+    """Tracking keeps mapping's reference while it is at most this many keyframes behind the newest keyframe;
+    further behind, tracking promotes its own keyframes (depth carried over) and corrects them by mapping's."""
     tracking_nice: int = 0
     """Niceness of the tracking thread (Linux; per thread). Tracking comes first on a shared CPU."""
     mapping_nice: int = 5
@@ -83,9 +94,15 @@ class BaSettings(BASettings):
     inbox_size: int = 4096
     """Messages buffered between the bus and the service loop."""
 
+    def tracker(self) -> "Tracker":
+        """The frame-rate tracker with these settings."""
+        from services.ba.frontend.tracker import Tracker
+        return Tracker(self.frontend_params().motion, self.tracking_flow_params(), self.tracking_promote_after)
+
     def tracking_flow_params(self) -> FlowParams:
         """Flow parameters of the tracker: cheaper than the window's (it runs on every frame)."""
-        return dataclasses.replace(self.flow_params(), preset=self.tracking_flow_preset, finest_scale=None)
+        return dataclasses.replace(self.flow_params(), preset=self.tracking_flow_preset,
+                                   finest_scale=self.tracking_finest_scale)
 
     def frontend_params(self) -> FrontendParams:
         """The frozen parameters of :class:`services.ba.frontend.frontend.Frontend`."""
@@ -98,4 +115,5 @@ class BaSettings(BASettings):
             motion=MotionParams(huber=self.motion_huber), ba=self.ba_params(),
             global_ba=self.ba_params(global_ba=True), flow=self.flow_params(), focal_after=self.focal_after,
             focal_until=self.focal_until, keep_keyframes=self.keep_keyframes,
-            live_flow_downscale=self.live_flow_downscale, live_iterations=self.live_iterations)
+            live_flow_downscale=self.live_flow_downscale, live_iterations=self.live_iterations,
+            live_max_deferred=self.live_max_deferred)

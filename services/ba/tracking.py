@@ -11,6 +11,7 @@ import threading
 import time
 from collections import deque
 
+import cv2
 import numpy as np
 import torch
 
@@ -98,7 +99,10 @@ class TrackingLoop:
 
     def _track(self, msg: FrameLite | Keyframe) -> None:
         self.last_seq = max(self.last_seq, msg.seq)
-        out = self.tracker.track(msg.seq, msg.t_ns, msg.image)
+        image, intrinsics = msg.image, msg.intrinsics
+        if isinstance(msg, Keyframe):  # before the map, provisional poses run at the size frames arrive in
+            image, intrinsics = half_size(to_grey(image), intrinsics)
+        out = self.tracker.track(msg.seq, msg.t_ns, image, intrinsics)
         if out is None:
             return
         self.tracked += 1
@@ -107,5 +111,14 @@ class TrackingLoop:
             if isinstance(msg, Keyframe):  # tracking moves on to it now, whether or not mapping keeps up
                 self.tracker.promote(msg.seq, msg.t_ns, to_grey(msg.image), out.pose)
         self._publish(msg, out.pose)
-        if not out.ok:
+        if not out.ok and out.ref_seq >= 0:
             log.info("frame kept its predicted pose (weak flow)", extra={"stream": self.stream, "seq": msg.seq})
+
+
+def half_size(grey: np.ndarray, intrinsics: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A working-resolution grey image and its (4,) intrinsics at half size (the resize rule of
+    docs/CONVENTIONS.md)."""
+    h, w = grey.shape[:2]
+    fx, fy, cx, cy = (float(v) for v in intrinsics)
+    small = cv2.resize(grey, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
+    return small, np.array([fx / 2, fy / 2, (cx + 0.5) / 2 - 0.5, (cy + 0.5) / 2 - 0.5])

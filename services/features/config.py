@@ -66,9 +66,10 @@ class FeaturesSettings(BaseSettings):
     """Lossless: no credit while the mapstore is this many keyframes behind."""
     downstream_ttl_s: float = 5.0
     """A downstream stage silent this long no longer holds the stream back (it died; its restart catches up)."""
-    semantics_nice: int = 10
+    semantics_nice: int = 19
     """Niceness of the semantics thread and its runtime's threads (Linux): on a shared CPU the order of sacrifice
-    is semantics, then mapping (ba's ``mapping_nice``), never tracking."""
+    is semantics, then mapping (ba's ``mapping_nice``), never tracking. 19 (the weakest) rather than 10: on KITTI 07
+    at 10 Hz real time ba merged 8 of 90 keyframes at 10 and none at 19 (docs/BENCHMARKS.md, live operation)."""
     eos_wait_s: float = 10.0
     """Zenoh orders messages per key only, so ingest's EOS can overtake its last frames: the stream is finished
     once the announced number of frames has arrived, or this long after the EOS."""

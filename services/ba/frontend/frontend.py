@@ -41,6 +41,8 @@ class KeyframeInput(NamedTuple):
     native_codes: NativeCodes | None = None  # the codes as received, for KeyframeGraph.recode on a new basis
     pose_guess: torch.Tensor | None = None  # (4, 4) world_from_cam from tracking: a better start than constant velocity
     realtime: bool = False  # from a live stream: mapping must keep up (cheaper edge flows, FrontendParams.live_*)
+    defer_ba: bool = False  # mapping is behind a live camera: align this keyframe and leave the window BA to a
+    # later one (at most FrontendParams.live_max_deferred in a row), so the graph keeps every keyframe
 
 
 class FrameInput(NamedTuple):
@@ -89,6 +91,8 @@ class Frontend:
         self._size = (0, 0)
         self._calibrated = False  # the multi-start focal calibration ran (see _calibrate_focal)
         self._live = False  # the newest keyframe came from a real-time stream
+        self._deferred = 0  # keyframes in a row whose window BA was left to a later keyframe
+        self._mapped = -1  # seq of the newest keyframe a window BA (or the start) has refined
 
     # --- inputs ----------------------------------------------------------------------------------------
     def add_keyframe(self, kf: KeyframeInput) -> Update:
@@ -103,18 +107,22 @@ class Frontend:
         self._live = kf.realtime
         g.flow_downscale = self.params.live_flow_downscale if kf.realtime else 1
         try:
-            return self._integrate(k)
+            return self._integrate(k, kf.defer_ba)
         except Exception:
             if k < len(g) and g.seqs[k] == kf.seq:  # leave the graph as it was before this keyframe
                 g.remove(k)
             raise
 
-    def _integrate(self, k: int) -> Update:
+    def _integrate(self, k: int, defer: bool = False) -> Update:
         g = self.graph
         if not self.initialised:
             return self._try_initialise()
         self._align_keyframe(k)
-        if not self._calibrated and len(g) >= self.params.focal_after and self.params.ba.optimise_focal:
+        calibrating = not self._calibrated and len(g) >= self.params.focal_after and self.params.ba.optimise_focal
+        if defer and not calibrating and self._deferred < self.params.live_max_deferred:
+            return self._defer(k)
+        self._deferred = 0
+        if calibrating:
             self._calibrate_focal()
         self._add_proximity(k)
         window = self._window()
@@ -125,8 +133,22 @@ class Frontend:
         if removed is not None:
             updated = {g.index(s) for s in removed if s in g.seqs}
         update = self._update(sorted(updated))
+        self._mapped = g.seqs[-1]
         self._retire()
         return update
+
+    def _defer(self, k: int) -> Update:
+        """Keyframe ``k`` joins the graph where motion-only alignment put it, with its proximity candidates; its
+        other edges' flows and the window BA come with a later keyframe (ORB-SLAM's local mapping likewise gives up
+        local BA while keyframes queue). Its pose and its frames' go out; its geometry waits for that BA."""
+        self._deferred += 1
+        self._add_proximity(k)
+        seqs = [self.graph.seqs[k]]
+        for seq in self.frames.pending(self.graph):
+            self.frames.align(self.graph, seq)
+            seqs.append(seq)
+        self._retire()
+        return Update(poses=self._pose_update(sorted(set(seqs))))
 
     def _retire(self) -> None:
         """Drop the oldest keyframes beyond ``keep_keyframes`` with the frames before the new oldest one."""
@@ -140,9 +162,12 @@ class Frontend:
         g = self.graph
         if g is None or not self.initialised or len(g) == 0:
             return None
-        previous = (g.stamps[-2], g.poses[-2].clone()) if len(g) > 1 else None
-        return Reference(g.seqs[-1], g.stamps[-1], g.poses[-1].clone(), g.disparity[-1].clone(),
-                         g.intrinsics.clone(), g.images[-1], previous)
+        # the newest keyframe a BA has refined: a deferred one still carries its predecessor's disparity
+        refined = [k for k, seq in enumerate(g.seqs) if seq <= self._mapped]
+        k = refined[-1] if refined else len(g) - 1
+        previous = (g.stamps[k - 1], g.poses[k - 1].clone()) if k > 0 else None
+        return Reference(g.seqs[k], g.stamps[k], g.poses[k].clone(), g.disparity[k].clone(),
+                         g.intrinsics.clone(), g.images[k], previous)
 
     def add_frame(self, frame: FrameInput) -> Update:
         image = core_flow.to_grey(np.asarray(frame.image))
@@ -338,6 +363,7 @@ class Frontend:
             self._slide_init_window()
             return Update()
         self.initialised = True
+        self._mapped = self.graph.seqs[-1]
         self.graph.predict_flow = p.predict_flow
         self.metric = p.ba.alpha_disp > 0 and any(pr is not None for pr in self.graph.priors)
         update = self._update(list(range(len(self.graph))))

@@ -72,6 +72,8 @@ class FrontendParams:
     live_flow_downscale: int = 2  # keyframes of a real-time stream get their edge flows at 1/this of the working
     # size (DIS 52 -> 12 ms per flow on KITTI): a live camera's mapping must keep up with its keyframes
     live_iterations: int = 3  # LM iterations of the window BA per real-time keyframe
+    live_max_deferred: int = 3  # a keyframe may leave its window BA to a later one (KeyframeInput.defer_ba) at
+    # most this many times in a row
     focal_range: tuple[float, float] = (0.36, 1.75)  # BA keeps the focal inside this x the first guess (60 deg
     # across the longer side): 115 deg to 36 deg, so 40-110 deg cameras fit. A bound constrains the focal; it never
     # throws a BA result away (the old refusal outside 0.6-1.6 x refused TartanAir's true 90 deg focal, 0.58 x)

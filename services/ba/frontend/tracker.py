@@ -54,6 +54,7 @@ class Tracked(NamedTuple):
     ok: bool  # False: too little flow to align; the pose is the constant-velocity prediction
 
 
+MAX_PROMOTED = 64  # keyframe poses tracking remembers, to correct its carried-over reference by mapping's
 MAX_EXTRAPOLATION = 8.0  # a prediction extends a motion at most this many times its own duration
 
 
@@ -94,6 +95,36 @@ def photometric_agreement(ref: np.ndarray, image: np.ndarray, target: np.ndarray
     return np.exp(-0.5 * (diff / PHOTO_SIGMA) ** 2).astype(np.float32)
 
 
+def bearing_rotation(target: np.ndarray, confidence: np.ndarray, intrinsics: np.ndarray, grid: int,
+                     min_confidence: float = 0.5) -> np.ndarray:
+    """(3, 3) rotation ``R`` (cam_b_from_cam_a) that best maps the bearings of camera a's grid cells onto those of
+    their flow ``target`` in camera b (Kabsch / Wahba), as if the scene were at infinity. ``target``: (h, w, 2)
+    grid coordinates in b; ``confidence``: (h, w); ``intrinsics``: (4,) of the images the flow ran on, whose
+    cells are ``grid`` pixels. Cells below ``min_confidence`` are left out, then the worst fifth of the rest
+    (parallax, moving objects) and the rotation fitted again. Identity without evidence."""
+    h, w = confidence.shape
+    fx, fy, cx, cy = (float(v) for v in intrinsics)
+    rows, cols = np.mgrid[0:h, 0:w]
+
+    def bearings(x_grid: np.ndarray, y_grid: np.ndarray) -> np.ndarray:
+        x, y = (x_grid + 0.5) * grid - 0.5, (y_grid + 0.5) * grid - 0.5  # grid -> pixels of these images
+        rays = np.stack([(x - cx) / fx, (y - cy) / fy, np.ones_like(x)], -1).reshape(-1, 3)
+        return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+
+    a, b = bearings(cols.astype(np.float64), rows.astype(np.float64)), bearings(target[..., 0], target[..., 1])
+    weight = np.where(confidence.reshape(-1) >= min_confidence, confidence.reshape(-1), 0.0)
+    rot = np.eye(3)
+    for _ in range(2):
+        if weight.sum() < 10:
+            return np.eye(3)
+        u, _, vt = np.linalg.svd((b * weight[:, None]).T @ a)
+        rot = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+        residual = np.linalg.norm(b - a @ rot.T, axis=1)
+        keep = weight > 0
+        weight = np.where(residual <= np.quantile(residual[keep], 0.8), weight, 0.0) if keep.any() else weight
+    return rot
+
+
 def propagate_disparity(pose_from: torch.Tensor, pose_to: torch.Tensor, disparity: torch.Tensor,
                         intrinsics: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Grid disparity ``(h, w)`` of camera ``pose_to`` from camera ``pose_from``'s ``(h, w)`` grid disparity: each
@@ -127,39 +158,79 @@ def propagate_disparity(pose_from: torch.Tensor, pose_to: torch.Tensor, disparit
 class Tracker:
     """Aligns frames in arrival order; feed references with :meth:`set_reference` as mapping produces them."""
 
-    def __init__(self, params: MotionParams, flow: FlowParams):
+    def __init__(self, params: MotionParams, flow: FlowParams, promote_after: int = 1):
         self.params = params
+        self.promote_after = promote_after  # mapping's reference is kept while it is at most this many keyframes
+        # behind the newest tracking has seen; further behind, tracking promotes its own keyframes
         scale = params.flow_downscale
         # at 1/scale a grid cell is grid/scale pixels and grid coordinates come out the same (frames.py)
         self.flow = replace(flow, grid=flow.grid // scale, fb_sigma=flow.fb_sigma / scale)
         self.reference: Reference | None = None  # what frames are aligned to: mapping's, or a carried-over one
         self._mapped: Reference | None = None  # mapping's newest
         self._head: Reference | None = None  # a keyframe promoted by tracking while mapping is behind
-        self._newest_keyframe = self._previous_keyframe = -1  # seqs of the last two keyframes tracking saw
+        self._keyframes: list[int] = []  # seqs of the last keyframes tracking saw (promote_after + 1)
         self._ref_small: np.ndarray | None = None
         self._history: list[Tracked] = []  # the last two tracked frames (constant-velocity prediction)
+        self._promoted: dict[int, torch.Tensor] = {}  # keyframe seq -> world_from_cam tracking gave it
+        self._origin: tuple[np.ndarray, np.ndarray] | None = None  # first frame before the map: small grey, K
+        self._origin_flow: np.ndarray | None = None  # the last flow from it (DIS's start for the next frame)
 
     def set_reference(self, ref: Reference) -> None:
         """Mapping's newest keyframe. Tracking uses it unless it holds a carried-over reference and ``ref`` is
-        older than the keyframe before the newest one tracking has seen (mapping is that far behind)."""
+        older than the keyframe before the newest one tracking has seen (mapping is that far behind); then the
+        carried-over reference is corrected by what mapping found for ``ref`` (:meth:`_correct`)."""
         self._mapped = ref
-        behind = self._head is not None and ref.seq < self._previous_keyframe
+        behind = self._head is not None and ref.seq < self._oldest_kept()
         if not behind:
             self._head = None
             self._use(ref)
+        else:
+            self._correct(ref)
+
+    def _correct(self, ref: Reference) -> None:
+        """Mapping refined keyframe ``ref`` that tracking had posed and carried depth past: the drift tracking
+        accumulated up to it is the difference of the two poses. The carried-over reference, the motion history
+        and the later promoted keyframes move by it, and the reference takes its depth afresh from ``ref``'s map
+        where that covers as much of it (DSO's coarse tracker likewise always tracks against the newest mapped
+        depth). Without it tracking stays a visual odometry for as long as mapping is behind (KITTI 07 live: 7 m)."""
+        tracked = self._promoted.get(ref.seq)
+        if tracked is None:
+            return
+        fix = ref.pose @ se3.inverse(tracked)
+        head = self._head
+        pose = se3.orthonormalize(fix @ head.pose)
+        previous = None if head.previous is None else (head.previous[0], se3.orthonormalize(fix @ head.previous[1]))
+        disparity, known = head.disparity, head.known
+        fresh, fresh_known = propagate_disparity(ref.pose, pose, ref.disparity, ref.intrinsics)
+        if known is None or float(fresh_known.mean()) >= 0.8 * float(known.mean()):
+            disparity, known = fresh, fresh_known
+        self._head = head._replace(pose=pose, disparity=disparity, known=known, previous=previous,
+                                   intrinsics=ref.intrinsics)
+        self._history = [t._replace(pose=se3.orthonormalize(fix @ t.pose)) for t in self._history]
+        self._promoted = {seq: (p if seq < ref.seq else fix @ p) for seq, p in self._promoted.items()}
+        self._promoted[ref.seq] = ref.pose  # corrected now: the same reference again changes nothing
+        self._use(self._head)
 
     def promote(self, seq: int, stamp: int, image: np.ndarray, pose: torch.Tensor) -> None:
         """Keyframe ``seq`` was tracked to ``pose`` (``image``: (H, W) grey, working resolution). When mapping
         does not yet hold the keyframe before it, it becomes the reference, with the current reference's depth
         carried over; otherwise mapping's reference stays (it is at most one keyframe back, and refined)."""
-        self._previous_keyframe, newest = self._newest_keyframe, seq
-        self._newest_keyframe = newest
-        if self._mapped is not None and self._mapped.seq >= self._previous_keyframe:
+        self._keyframes = (self._keyframes + [seq])[-(self.promote_after + 1):]
+        self._promoted[seq] = pose
+        if len(self._promoted) > MAX_PROMOTED:
+            self._promoted.pop(min(self._promoted))
+        if self._mapped is not None and self._mapped.seq >= self._oldest_kept():
             return
         ref = self.reference
         disparity, known = propagate_disparity(ref.pose, pose, ref.disparity, ref.intrinsics)
         self._head = Reference(seq, stamp, pose, disparity, ref.intrinsics, image, (ref.stamp, ref.pose), known)
         self._use(self._head)
+
+    def _oldest_kept(self) -> int:
+        """Seq of the oldest keyframe mapping's reference may be and still be tracked against."""
+        if len(self._keyframes) <= self.promote_after:
+            return -1
+        return self._keyframes[0]
 
     def _use(self, ref: Reference) -> None:
         scale = self.params.flow_downscale
@@ -168,11 +239,35 @@ class Tracker:
                                                                   interpolation=cv2.INTER_AREA)
         self.reference = ref
 
+    def _provisional(self, seq: int, stamp: int, image: np.ndarray, intrinsics: np.ndarray) -> Tracked:
+        """Before the map: a monocular camera has no translation (nor scale) until there is parallax, but its
+        rotation is observable. The stream's first frame defines the world (identity); a later one gets the
+        rotation that best maps the first frame's bearings onto its own along DIS flow (Kabsch on bearings,
+        outliers dropped), and no translation. Published as tracked, never anchored: mapping revises it once
+        the map starts. It keeps a live consumer's first poses within the tracking latency from the first frame
+        on (KITTI 07: the map starts 0.7 s after frame 0)."""
+        grey = core_flow.to_grey(np.asarray(image))
+        if self._origin is None:  # later frames are resized to its size (frames arrive at half the working size)
+            self._origin = (grey, np.asarray(intrinsics, np.float64))
+            self._origin_flow = None
+            return Tracked(seq, stamp, torch.eye(4, dtype=torch.float64), -1, False)
+        small, k = self._origin
+        size = (small.shape[1], small.shape[0])
+        if grey.shape[:2] != small.shape:
+            grey = cv2.resize(grey, size, interpolation=cv2.INTER_AREA if grey.shape[1] > size[0] else cv2.INTER_LINEAR)
+        ft = core_flow.flow_targets(small, grey, self.flow, self._origin_flow)
+        self._origin_flow = ft.flow
+        pose = torch.eye(4, dtype=torch.float64)
+        pose[:3, :3] = torch.from_numpy(bearing_rotation(ft.target, ft.confidence, k, self.flow.grid)).T
+        return Tracked(seq, stamp, pose, -1, False)
+
     def reset(self) -> None:
         """A new stream: forget the reference and the motion."""
         self.reference, self._ref_small, self._history = None, None, []
+        self._origin = self._origin_flow = None
         self._mapped = self._head = None
-        self._newest_keyframe = self._previous_keyframe = -1
+        self._keyframes = []
+        self._promoted = {}
 
     def predict(self, stamp: int) -> torch.Tensor:
         """Constant-velocity world_from_cam at time ``stamp``: from the last two tracked frames while tracking
@@ -185,12 +280,13 @@ class Tracker:
             return _extrapolate(*ref.previous, ref.stamp, ref.pose, stamp)
         return ref.pose
 
-    def track(self, seq: int, stamp: int, image: np.ndarray) -> Tracked | None:
-        """Pose of frame ``seq`` (``image``: (h, w) grey or (h, w, 3), any size with the working aspect ratio);
-        None before the first reference (the map has not started)."""
+    def track(self, seq: int, stamp: int, image: np.ndarray, intrinsics: np.ndarray | None = None) -> Tracked | None:
+        """Pose of frame ``seq`` (``image``: (h, w) grey or (h, w, 3), any size with the working aspect ratio).
+        Before the first reference (the map has not started) a provisional rotation-only pose when ``intrinsics``
+        ((4,) fx, fy, cx, cy of ``image``) are given (:meth:`_provisional`), else None."""
         ref = self.reference
         if ref is None:
-            return None
+            return None if intrinsics is None else self._provisional(seq, stamp, image, intrinsics)
         small = self._ref_small
         size = (small.shape[1], small.shape[0])
         grey = core_flow.to_grey(np.asarray(image))
