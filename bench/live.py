@@ -153,6 +153,9 @@ def table(run: Run, summary: dict, meta: dict) -> str:
     rows.append(("frame → first pose p50 / p99 / max",
                  f"{lat['p50']:.0f} / {lat['p99']:.0f} / {lat['max']:.0f} ms" if lat else "–"))
     rows.append(("ATE first poses (Sim3)", _ate(summary.get("ate_first_poses"), summary.get("ate_first_poses_pairs"))))
+    rows.append(("first poses provisional (rotation only, before the map)", str(summary.get("provisional_poses", 0))))
+    rows.append(("ATE first poses after the map (Sim3)",
+                 _ate(summary.get("ate_first_poses_mapped"), summary.get("ate_first_poses_mapped_pairs"))))
     rows.append(("ATE final poses (Sim3)", _ate(summary.get("ate_rmse_sim3"), summary.get("ate_pairs"))))
     rows.append(("end-to-end fps (frames read / ingest start → last EOS)",
                  f"{read / duration:.2f} ({read} in {duration:.1f} s)" if duration else "–"))

@@ -77,6 +77,11 @@ def _print_live(report) -> None:
     if report.ate_first_poses is not None:
         print(f"  ATE first poses:   {report.ate_first_poses:.4f} RMSE over {report.ate_first_poses_pairs} poses "
               "(each frame's first pose, as published live)")
+    if report.provisional_poses:
+        after = ("" if report.ate_first_poses_mapped is None else
+                 f"; after the map: {report.ate_first_poses_mapped:.4f} RMSE over {report.ate_first_poses_mapped_pairs}")
+        print(f"  before the map:    {report.provisional_poses} frames got a provisional (rotation-only) first "
+              f"pose{after}")
     if report.drops:
         drops = ", ".join(f"{stage} {'?' if n is None else n}" for stage, n in report.drops.items())
         skipped = f"; codes skipped {report.codes_skipped}" if report.codes_skipped is not None else ""

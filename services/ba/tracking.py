@@ -91,11 +91,11 @@ class TrackingLoop:
             return
         self._publish(msg, self.tracker.predict(msg.t_ns))
 
-    def _publish(self, msg: FrameLite | Keyframe, pose: torch.Tensor) -> None:
+    def _publish(self, msg: FrameLite | Keyframe, pose: torch.Tensor, provisional: bool = False) -> None:
         self.bus.publish(keys.topic(self.stream, keys.POSE), Poses(
             self.stream, msg.seq, time.time_ns(), frame_seqs=np.array([msg.seq], np.int64),
             stamps_ns=np.array([msg.t_ns], np.int64), poses=pose.detach().cpu().numpy().astype(np.float64)[None],
-            tracked=True))
+            tracked=True, provisional=provisional))
 
     def _track(self, msg: FrameLite | Keyframe) -> None:
         self.last_seq = max(self.last_seq, msg.seq)
@@ -110,7 +110,7 @@ class TrackingLoop:
             self.anchors[msg.seq] = (out.ref_seq, se3.inverse(self.tracker.reference.pose) @ out.pose, out.pose)
             if isinstance(msg, Keyframe):  # tracking moves on to it now, whether or not mapping keeps up
                 self.tracker.promote(msg.seq, msg.t_ns, to_grey(msg.image), out.pose)
-        self._publish(msg, out.pose)
+        self._publish(msg, out.pose, provisional=out.ref_seq < 0)
         if not out.ok and out.ref_seq >= 0:
             log.info("frame kept its predicted pose (weak flow)", extra={"stream": self.stream, "seq": msg.seq})
 

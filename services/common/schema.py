@@ -166,6 +166,7 @@ class Poses(Message):
     poses: np.ndarray = field(metadata=arr("f8", ("N", 4, 4)))  # world_from_cam
     final: bool = False
     tracked: bool = False  # frame-rate tracking poses: kept until mapping publishes a revision of the frame
+    provisional: bool = False  # tracked before the map started: rotation only, no translation (nor scale) yet
 
 
 @dataclass(frozen=True)

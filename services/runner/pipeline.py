@@ -75,6 +75,9 @@ class RunReport:
     pose_latency_ms: dict[str, float] | None = None  # frame seen on the bus → its first pose: p50, p99, max, n
     ate_first_poses: float | None = None  # Sim(3) ATE of each frame's first pose (tracked or mapped)
     ate_first_poses_pairs: int = 0
+    provisional_poses: int = 0  # frames whose first pose was tracking's rotation-only one from before the map
+    ate_first_poses_mapped: float | None = None  # the same ATE over the frames posed after the map started
+    ate_first_poses_mapped_pairs: int = 0
     drops: dict[str, int | None] = field(default_factory=dict)  # per stage, from its EOS (None: no EOS came)
     codes_skipped: int | None = None  # features, real time: keyframes the backbone skipped as stale
     end_of_stream_s: float | None = None  # ingest's EOS → the last stage's EOS, as the runner saw them
@@ -98,6 +101,7 @@ class _Observer:
         self.seen_at: dict[int, float] = {}  # frame seq → monotonic time the runner saw it on the bus
         self.first_pose: dict[int, tuple[float, int, object]] = {}  # seq → (arrival, stamp, pose) of its first pose
         self.first_tracked: set[int] = set()  # frames whose first pose came from tracking (not mapping)
+        self.first_provisional: set[int] = set()  # ... tracking's rotation-only pose from before the map
         self.eos: dict[str, Eos] = {}
         self.eos_at: dict[str, float] = {}
         self.done = threading.Event()
@@ -120,6 +124,8 @@ class _Observer:
                         self.first_pose[int(seq)] = (now, int(stamp), pose)
                         if msg.tracked:
                             self.first_tracked.add(int(seq))
+                        if msg.provisional:
+                            self.first_provisional.add(int(seq))
                     if msg.tracked and int(seq) in self.mapped:
                         continue
                     self.poses[int(seq)] = (int(stamp), pose)
@@ -211,8 +217,10 @@ def run_pipeline(cfg: RunSettings, on_outputs: Callable[[RunReport], None] | Non
             _fill_report(report, observer, monitor)
             poses, first_poses = dict(observer.poses), dict(observer.first_pose)
             seen_at, first_tracked = dict(observer.seen_at), set(observer.first_tracked)
-        live = _write_live(cfg, first_poses, seen_at, first_tracked)
-        report.outputs = _write_outputs(cfg, report, poses, first_poses, live)
+            provisional = set(observer.first_provisional)
+        report.provisional_poses = len(provisional)
+        live = _write_live(cfg, first_poses, seen_at, first_tracked, provisional)
+        report.outputs = _write_outputs(cfg, report, poses, first_poses, provisional, live)
         if on_outputs is not None:
             on_outputs(report)
 
@@ -425,10 +433,10 @@ def _trajectory(poses: dict[int, tuple]) -> Trajectory:
 
 
 def _write_live(cfg: RunSettings, first_poses: dict[int, tuple[float, int, object]], seen_at: dict[int, float],
-                first_tracked: set[int]) -> list[str]:
+                first_tracked: set[int], provisional: set[int]) -> list[str]:
     """What a live consumer saw: ``trajectory_live.txt`` (TUM, each frame's first pose as it was published) and
     ``frames.csv`` (per frame seen on the bus: its stamp, the latency from the frame to its first pose, and whether
-    tracking or mapping gave that pose)."""
+    tracking or mapping gave that pose; ``provisional``: tracking's rotation-only pose from before the map)."""
     if not first_poses and not seen_at:
         return []
     written = []
@@ -443,14 +451,16 @@ def _write_live(cfg: RunSettings, first_poses: dict[int, tuple[float, int, objec
             first = first_poses.get(seq)
             latency = "" if first is None or seq not in seen_at else f"{max(0.0, first[0] - seen_at[seq]) * 1e3:.1f}"
             stamp = "" if first is None else f"{first[1] / 1e9:.6f}"
-            source = "" if first is None else ("tracked" if seq in first_tracked else "mapped")
+            source = "" if first is None else ("provisional" if seq in provisional else
+                                               "tracked" if seq in first_tracked else "mapped")
             out.write(f"{seq},{stamp},{latency},{source}\n")
     written.append(str(path))
     return written
 
 
 def _write_outputs(cfg: RunSettings, report: RunReport, poses: dict[int, tuple[int, object]],
-                   first_poses: dict[int, tuple[float, int, object]], also_written: list[str] = ()) -> list[str]:
+                   first_poses: dict[int, tuple[float, int, object]], provisional: set[int],
+                   also_written: list[str] = ()) -> list[str]:
     """trajectory.txt (the latest pose of every frame), the ATE of those and of each frame's first pose (what a
     live consumer saw at the time) when the source has ground truth, and summary.json."""
     written = []
@@ -460,11 +470,15 @@ def _write_outputs(cfg: RunSettings, report: RunReport, poses: dict[int, tuple[i
         write_tum(path, estimate)
         written.append(str(path))
         live = _trajectory(first_poses)
-        ate, ate_live = evaluate(cfg.source, estimate, live)
+        placed = {seq: p for seq, p in first_poses.items() if seq not in provisional}
+        more = [live] + ([_trajectory(placed)] if len(placed) >= 3 and len(placed) < len(first_poses) else [])
+        ate, ate_live, *ate_placed = evaluate(cfg.source, estimate, *more)
         if ate is not None:
             report.ate_rmse_sim3, report.ate_pairs = ate.rmse, ate.n_pairs
         if ate_live is not None:
             report.ate_first_poses, report.ate_first_poses_pairs = ate_live.rmse, ate_live.n_pairs
+        if ate_placed and ate_placed[0] is not None:
+            report.ate_first_poses_mapped, report.ate_first_poses_mapped_pairs = ate_placed[0].rmse, ate_placed[0].n_pairs
     written += list(also_written)
     written += [str(cfg.out / name) for name in ("map.ply", "cameras.txt") if (cfg.out / name).is_file()]
     summary = cfg.out / "summary.json"
