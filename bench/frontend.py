@@ -124,6 +124,8 @@ def run_frontend(frames: list[SourceFrame], focal: float | None = None,
         is_kf = selector.observe(work).is_keyframe or n == len(frames) - 1
         if is_kf:
             selector.set_reference(work)
+            if tracker is not None:
+                tracker.keyframe_seen(frame.index)
             if anchor is not None:  # as the tracking thread does: move on to the keyframe
                 tracker.promote(frame.index, frame.t_ns, work, anchor[2])
         queue.append((frame, work, anchor, is_kf))

@@ -178,7 +178,8 @@ def test_mapping_behind_a_live_camera_defers_its_window_ba_and_keeps_every_keyfr
             fe.add_frame(FrameInput(msg.seq, msg.t_ns, msg.image))
     assert most_in_a_row == fe.params.live_max_deferred
     assert fe.graph.seqs == [s for s in kf_seqs if s in fe.graph.seqs] and len(fe.graph) >= len(kf_seqs) - 2
-    assert fe.reference().seq <= fe._mapped  # tracking gets a keyframe a BA refined, never a deferred one
+    ref = fe.reference()  # tracking's: the newest keyframe, a deferred one with its depth carried over
+    assert ref.seq == fe.graph.seqs[-1] and (ref.known is not None) == (fe._deferred > 0)
     final = fe.finish()
     rmse, length = ate_of(world, final.poses.frame_seqs, final.poses.poses)
     print(f"deferred window BAs: ATE {rmse:.4f} m over {length:.2f} m")

@@ -94,8 +94,10 @@ def test_a_promoted_keyframe_keeps_tracking_on_the_exact_trajectory():
     assert trans < 0.05 * path and rot < 1.0, (trans, rot)
     tracker.set_reference(_reference(world, 6))  # mapping two keyframes behind: the carried-over one stays
     assert tracker.reference.seq == 12
-    tracker.set_reference(_reference(world, 9))  # mapping holds the keyframe before the newest: it wins
-    assert tracker.reference.seq == 9
+    tracker.set_reference(_reference(world, 9))  # older than the carried-over one: never a step back
+    assert tracker.reference.seq == 12
+    tracker.set_reference(_reference(world, 12))  # mapping holds tracking's newest: mapping's wins
+    assert tracker.reference.seq == 12 and tracker.reference.known is None
 
 
 def test_a_keyframe_mapping_keeps_up_with_is_not_promoted():

@@ -106,6 +106,8 @@ class TrackingLoop:
         if out is None:
             return
         self.tracked += 1
+        if isinstance(msg, Keyframe):
+            self.tracker.keyframe_seen(msg.seq)
         if out.ok:
             self.anchors[msg.seq] = (out.ref_seq, se3.inverse(self.tracker.reference.pose) @ out.pose, out.pose)
             if isinstance(msg, Keyframe):  # tracking moves on to it now, whether or not mapping keeps up

@@ -26,7 +26,7 @@ from services.ba.frontend import edges, init, motion
 from services.ba.frontend.frames import FramePoses, FrameRecord
 from services.ba.frontend.graph import GRID, KeyframeGraph, NativeCodes, grid_intrinsics, working_intrinsics
 from services.ba.frontend.params import FrontendParams
-from services.ba.frontend.tracker import Reference
+from services.ba.frontend.tracker import Reference, propagate_disparity
 
 logger = logging.getLogger(__name__)
 
@@ -92,7 +92,8 @@ class Frontend:
         self._calibrated = False  # the multi-start focal calibration ran (see _calibrate_focal)
         self._live = False  # the newest keyframe came from a real-time stream
         self._deferred = 0  # keyframes in a row whose window BA was left to a later keyframe
-        self._mapped = -1  # seq of the newest keyframe a window BA (or the start) has refined
+        self._carried: dict[int, torch.Tensor] = {}  # deferred keyframe seq -> (h, w) 1 where its carried-over
+        # disparity is measured (a point landed), 0 where filled in; emptied by the next window BA
 
     # --- inputs ----------------------------------------------------------------------------------------
     def add_keyframe(self, kf: KeyframeInput) -> Update:
@@ -133,7 +134,7 @@ class Frontend:
         if removed is not None:
             updated = {g.index(s) for s in removed if s in g.seqs}
         update = self._update(sorted(updated))
-        self._mapped = g.seqs[-1]
+        self._carried.clear()
         self._retire()
         return update
 
@@ -142,6 +143,11 @@ class Frontend:
         other edges' flows and the window BA come with a later keyframe (ORB-SLAM's local mapping likewise gives up
         local BA while keyframes queue). Its pose and its frames' go out; its geometry waits for that BA."""
         self._deferred += 1
+        g = self.graph
+        # its depth carried over from the keyframe before (not that keyframe's map as it is): the BA that comes
+        # starts there, and tracking takes it as its reference at once
+        g.disparity[k], self._carried[g.seqs[k]] = propagate_disparity(g.poses[k - 1], g.poses[k], g.disparity[k - 1],
+                                                                       g.intrinsics)
         self._add_proximity(k)
         seqs = [self.graph.seqs[k]]
         for seq in self.frames.pending(self.graph):
@@ -162,12 +168,11 @@ class Frontend:
         g = self.graph
         if g is None or not self.initialised or len(g) == 0:
             return None
-        # the newest keyframe a BA has refined: a deferred one still carries its predecessor's disparity
-        refined = [k for k, seq in enumerate(g.seqs) if seq <= self._mapped]
-        k = refined[-1] if refined else len(g) - 1
+        k = len(g) - 1
         previous = (g.stamps[k - 1], g.poses[k - 1].clone()) if k > 0 else None
+        known = self._carried.get(g.seqs[k])  # a deferred keyframe: its depth carried over, no BA yet
         return Reference(g.seqs[k], g.stamps[k], g.poses[k].clone(), g.disparity[k].clone(),
-                         g.intrinsics.clone(), g.images[k], previous)
+                         g.intrinsics.clone(), g.images[k], previous, None if known is None else known.clone())
 
     def add_frame(self, frame: FrameInput) -> Update:
         image = core_flow.to_grey(np.asarray(frame.image))
@@ -363,7 +368,6 @@ class Frontend:
             self._slide_init_window()
             return Update()
         self.initialised = True
-        self._mapped = self.graph.seqs[-1]
         self.graph.predict_flow = p.predict_flow
         self.metric = p.ba.alpha_disp > 0 and any(pr is not None for pr in self.graph.priors)
         update = self._update(list(range(len(self.graph))))
@@ -376,7 +380,8 @@ class Frontend:
         p = self.params
         self._calibrated = True
         ba = dataclasses.replace(p.ba, optimise_focal=True, iterations=p.init.iterations)
-        if init.calibrate_focal(self.graph, p.init, ba, p.motion, p.focal_restarts) is not None and not self._live:
+        restarts = p.live_focal_restarts if self._live else p.focal_restarts
+        if init.calibrate_focal(self.graph, p.init, ba, p.motion, restarts) is not None and not self._live:
             # the restarted map is in the scale of the old one (init._keep_scale), so a live stream's frames keep
             # their anchors: their poses went out when tracked, and aligning them all again would stall mapping
             self.frames.unanchor()

@@ -158,9 +158,15 @@ def start_map(graph: KeyframeGraph, params: InitParams, ba_params: BAParams, mot
     iterations = dataclasses.replace(ba_params, iterations=params.iterations)
     best, costs = candidates[0], []
     if len(candidates) > 1:
-        costs = [_seed_and_adjust(graph, c, iterations, motion_params) for c in candidates]
-        best = candidates[int(np.argmin(costs))]
-    cost = _seed_and_adjust(graph, best, iterations, motion_params)
+        adjusted = []  # each candidate's cost and adjusted map: the winner's is kept, not computed again
+        for c in candidates:
+            adjusted.append((_seed_and_adjust(graph, c, iterations, motion_params), graph.snapshot()))
+        costs = [c for c, _ in adjusted]
+        pick = int(np.argmin(costs))
+        best, (cost, state) = candidates[pick], adjusted[pick]
+        graph.restore(state)
+    else:
+        cost = _seed_and_adjust(graph, best, iterations, motion_params)
     logger.info("map initialised", extra={"keyframes": n, "inliers": best.inliers, "model": best.model,
                                           "flow": round(flow, 2), "candidate_costs": [round(c, 3) for c in costs]})
     return cost

@@ -180,7 +180,7 @@ class Tracker:
         older than the keyframe before the newest one tracking has seen (mapping is that far behind); then the
         carried-over reference is corrected by what mapping found for ``ref`` (:meth:`_correct`)."""
         self._mapped = ref
-        behind = self._head is not None and ref.seq < self._oldest_kept()
+        behind = self._head is not None and ref.seq < self._head.seq
         if not behind:
             self._head = None
             self._use(ref)
@@ -211,11 +211,16 @@ class Tracker:
         self._promoted[ref.seq] = ref.pose  # corrected now: the same reference again changes nothing
         self._use(self._head)
 
+    def keyframe_seen(self, seq: int) -> None:
+        """A keyframe went past tracking, posed or not: it counts towards how far behind mapping is."""
+        if not self._keyframes or self._keyframes[-1] != seq:
+            self._keyframes = (self._keyframes + [seq])[-(self.promote_after + 1):]
+
     def promote(self, seq: int, stamp: int, image: np.ndarray, pose: torch.Tensor) -> None:
         """Keyframe ``seq`` was tracked to ``pose`` (``image``: (H, W) grey, working resolution). When mapping
         does not yet hold the keyframe before it, it becomes the reference, with the current reference's depth
         carried over; otherwise mapping's reference stays (it is at most one keyframe back, and refined)."""
-        self._keyframes = (self._keyframes + [seq])[-(self.promote_after + 1):]
+        self.keyframe_seen(seq)
         self._promoted[seq] = pose
         if len(self._promoted) > MAX_PROMOTED:
             self._promoted.pop(min(self._promoted))
