@@ -52,6 +52,13 @@ def _expansion(dtype, device) -> torch.Tensor:
     return m
 
 
+CHUNK = 32  # edges (or keyframes) whose float64 per-pixel copies exist at once
+
+
+def _chunks(n: int) -> list[slice]:
+    return [slice(start, min(start + CHUNK, n)) for start in range(0, n, CHUNK)]
+
+
 def _edge_slots(ii: torch.Tensor, n_kf: int) -> tuple[torch.Tensor, int]:
     """Rank of each edge among the edges with the same source, and the maximum out-degree."""
     counts = torch.bincount(ii, minlength=n_kf)
@@ -84,12 +91,15 @@ def solve(eq: NormalEquations, ii: torch.Tensor, jj: torch.Tensor, n_kf: int, fr
     # Sums over thousands of pixels: in float32 their rounding (~1e-7 relative per partial sum) is of the order of
     # what the Schur complement leaves after cancelling when scale or focal are barely observable, so the operands
     # of every reduction are promoted to the camera dtype first (tests/test_schur_conditioning.py)
-    flat_j = eq.j_cam.reshape(n_edges, 7, n_res * n_pix).to(dtype)
     expand = _expansion(dtype, dev)  # (13, 7): [xi_i, xi_j, f] from [xi_i, f]
-    h_77 = torch.bmm(flat_j * eq.weight.reshape(n_edges, 1, -1).to(dtype), flat_j.transpose(1, 2))
+    h_77 = torch.empty(n_edges, 7, 7, dtype=dtype, device=dev)
+    g_7 = torch.empty(n_edges, 7, dtype=dtype, device=dev)
+    for chunk in _chunks(n_edges):  # the float64 copies of a few edges at a time: a global BA's are GBs at once
+        flat_j = eq.j_cam[chunk].reshape(-1, 7, n_res * n_pix).to(dtype)
+        h_77[chunk] = torch.bmm(flat_j * eq.weight[chunk].reshape(len(flat_j), 1, -1).to(dtype), flat_j.transpose(1, 2))
+        g_7[chunk] = torch.bmm(flat_j, wr[chunk].reshape(len(flat_j), -1, 1).to(dtype))[..., 0]
     h_cc = expand @ h_77 @ expand.T
-    g_c = -torch.bmm(flat_j, wr.reshape(n_edges, -1, 1).to(dtype))[..., 0] @ expand.T
-    del flat_j
+    g_c = -g_7 @ expand.T
     # sum over the few residual components explicitly: a batched matmul of P*E tiny matrices is far slower
     h_cd7 = sum(eq.j_cam[:, :, r] * wd[:, None, r] for r in range(n_res))  # (E, 7, P) = [xi_i, f]
     ar6 = torch.arange(6, device=dev)
@@ -122,12 +132,16 @@ def solve(eq: NormalEquations, ii: torch.Tensor, jj: torch.Tensor, n_kf: int, fr
     diag = torch.diagonal(big_h)
     big_h = big_h + torch.diag(lm * diag + pose_eps)
     inv_dd = 1 / (h_dd * (1 + lm) + disp_eps)
-    coupling64 = coupling.to(dtype)
-    scaled = coupling64 * inv_dd.to(dtype)[:, None, :]
-    blocks = torch.bmm(scaled, coupling64.transpose(1, 2))  # (N, D, D)
+    blocks = torch.empty(n_kf, width, width, dtype=dtype, device=dev)  # (N, D, D)
+    reduced_g = torch.empty(n_kf, width, dtype=dtype, device=dev)
+    for chunk in _chunks(n_kf):
+        coupling64 = coupling[chunk].to(dtype)
+        scaled = coupling64 * inv_dd[chunk].to(dtype)[:, None, :]
+        blocks[chunk] = torch.bmm(scaled, coupling64.transpose(1, 2))
+        reduced_g[chunk] = torch.bmm(scaled, g_d[chunk].to(dtype)[:, :, None])[..., 0]
     schur = big_h.reshape(-1).index_add(0, (colmap[:, :, None] * n_ext + colmap[:, None, :]).reshape(-1),
                                         -blocks.reshape(-1)).view(n_ext, n_ext)
-    rhs = big_g.index_add(0, colmap.reshape(-1), -torch.bmm(scaled, g_d.to(dtype)[:, :, None]).reshape(-1))
+    rhs = big_g.index_add(0, colmap.reshape(-1), -reduced_g.reshape(-1))
 
     s_ff = schur[free_cam][:, free_cam]
     chol, info = torch.linalg.cholesky_ex(s_ff)
@@ -140,5 +154,8 @@ def solve(eq: NormalEquations, ii: torch.Tensor, jj: torch.Tensor, n_kf: int, fr
         delta_free = torch.linalg.pinv(s_ff) @ rhs[free_cam]
     delta_cam = torch.zeros(n_ext, dtype=dtype, device=dev)
     delta_cam[free_cam] = delta_free
-    delta_d = inv_dd.to(dtype) * (g_d.to(dtype) - torch.bmm(delta_cam[colmap][:, None], coupling64)[:, 0])
+    delta_d = torch.empty(n_kf, n_pix, dtype=dtype, device=dev)
+    for chunk in _chunks(n_kf):
+        back = torch.bmm(delta_cam[colmap[chunk]][:, None], coupling[chunk].to(dtype))[:, 0]
+        delta_d[chunk] = inv_dd[chunk].to(dtype) * (g_d[chunk].to(dtype) - back)
     return Step(delta_cam[: 6 * n_kf].view(n_kf, 6), delta_cam[6 * n_kf], delta_d)
