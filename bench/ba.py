@@ -67,9 +67,10 @@ def main() -> None:
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32", help="per-pixel arithmetic")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (the ba service uses 1)")
     parser.add_argument("--no-malloc-tuning", action="store_true", help="leave glibc malloc at its defaults")
+    parser.add_argument("--keep-mib", type=int, default=None, help="freed heap glibc keeps (tune_malloc_for_tensors)")
     args = parser.parse_args()
     if not args.no_malloc_tuning:
-        tune_malloc_for_tensors()
+        tune_malloc_for_tensors() if args.keep_mib is None else tune_malloc_for_tensors(args.keep_mib)
     if args.threads:
         torch.set_num_threads(args.threads)
     h, w = (int(v) for v in args.grid.split("x"))

@@ -135,8 +135,19 @@ class Frontend:
             updated = {g.index(s) for s in removed if s in g.seqs}
         update = self._update(sorted(updated))
         self._carried.clear()
+        self._prefetch_global_edges()
         self._retire()
         return update
+
+    def _prefetch_global_edges(self) -> None:
+        """Flow targets of the end-of-stream BA's temporal edges beyond the window's radius, for the keyframe
+        before the newest (the newest may still be turned back into a frame): computed now, one pair per keyframe,
+        the end of stream only solves (KITTI 07: 8 s of flow at the end otherwise)."""
+        g, gp = self.graph, self.params.graph
+        k = len(g) - 2
+        for back in range(gp.temporal_radius + 1, gp.global_radius + 1):
+            if k - back >= 0:
+                g.targets(k - back, k)
 
     def _defer(self, k: int) -> Update:
         """Keyframe ``k`` joins the graph where motion-only alignment put it, with its proximity candidates; its

@@ -29,6 +29,7 @@ from services.ba.core.params import FlowParams
 from services.ba.frontend import motion
 from services.ba.frontend.edges import induced_flow_field
 from services.ba.frontend.params import MotionParams
+from services.ba.frontend.rotation import bearing_rotation
 
 GRID = 8  # working pixels per grid cell (docs/CONVENTIONS.md)
 
@@ -93,36 +94,6 @@ def photometric_agreement(ref: np.ndarray, image: np.ndarray, target: np.ndarray
         return np.zeros((h, w), np.float32)
     diff = (ref_cells - ref_cells.mean()) / max(float(ref_cells.std()), 1.0) - (landed - blurred.mean()) / spread
     return np.exp(-0.5 * (diff / PHOTO_SIGMA) ** 2).astype(np.float32)
-
-
-def bearing_rotation(target: np.ndarray, confidence: np.ndarray, intrinsics: np.ndarray, grid: int,
-                     min_confidence: float = 0.5) -> np.ndarray:
-    """(3, 3) rotation ``R`` (cam_b_from_cam_a) that best maps the bearings of camera a's grid cells onto those of
-    their flow ``target`` in camera b (Kabsch / Wahba), as if the scene were at infinity. ``target``: (h, w, 2)
-    grid coordinates in b; ``confidence``: (h, w); ``intrinsics``: (4,) of the images the flow ran on, whose
-    cells are ``grid`` pixels. Cells below ``min_confidence`` are left out, then the worst fifth of the rest
-    (parallax, moving objects) and the rotation fitted again. Identity without evidence."""
-    h, w = confidence.shape
-    fx, fy, cx, cy = (float(v) for v in intrinsics)
-    rows, cols = np.mgrid[0:h, 0:w]
-
-    def bearings(x_grid: np.ndarray, y_grid: np.ndarray) -> np.ndarray:
-        x, y = (x_grid + 0.5) * grid - 0.5, (y_grid + 0.5) * grid - 0.5  # grid -> pixels of these images
-        rays = np.stack([(x - cx) / fx, (y - cy) / fy, np.ones_like(x)], -1).reshape(-1, 3)
-        return rays / np.linalg.norm(rays, axis=1, keepdims=True)
-
-    a, b = bearings(cols.astype(np.float64), rows.astype(np.float64)), bearings(target[..., 0], target[..., 1])
-    weight = np.where(confidence.reshape(-1) >= min_confidence, confidence.reshape(-1), 0.0)
-    rot = np.eye(3)
-    for _ in range(2):
-        if weight.sum() < 10:
-            return np.eye(3)
-        u, _, vt = np.linalg.svd((b * weight[:, None]).T @ a)
-        rot = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
-        residual = np.linalg.norm(b - a @ rot.T, axis=1)
-        keep = weight > 0
-        weight = np.where(residual <= np.quantile(residual[keep], 0.8), weight, 0.0) if keep.any() else weight
-    return rot
 
 
 def propagate_disparity(pose_from: torch.Tensor, pose_to: torch.Tensor, disparity: torch.Tensor,
