@@ -167,6 +167,7 @@ def build_parser() -> argparse.ArgumentParser:
 # Tools of later stages; each exposes register(subparsers).
 _TOOL_MODULES = [
     "services.evaluation.cli", "services.common.models.cli", "services.mapstore.cli", "services.query_api.cli",
+    "services.common.bus_cli",
 ]
 
 

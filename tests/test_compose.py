@@ -39,7 +39,7 @@ def test_clients_connect_to_the_router(compose):
     for name in PIPELINE:
         env = compose["services"][name]["environment"]
         assert env["KMVIPE_BUS_MODE"] == "client"
-        assert env["KMVIPE_BUS_CONNECT"] == '["tcp/zenoh:7447"]'
+        assert env["KMVIPE_BUS_CONNECT"] == '["tls/zenoh:7447"]'  # the secured router (docs/SECURITY.md)
 
 
 @pytest.mark.skipif(shutil.which("docker-compose") is None, reason="docker-compose not installed (CI installs it)")

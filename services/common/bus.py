@@ -9,13 +9,14 @@ import threading
 import uuid
 from collections import Counter, deque
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable, Iterable
 
 import zenoh
 
 from . import keys
 from .config import BusSettings
-from .errors import BusError, DecodeError, ServiceTimeout
+from .errors import BusError, ConfigError, DecodeError, ServiceTimeout
 from .schema import Message, decode, encode
 
 log = logging.getLogger(__name__)
@@ -35,7 +36,27 @@ def zenoh_config(settings: BusSettings) -> zenoh.Config:
         conf.insert_json5("transport/shared_memory/mode", json.dumps("init"))
         conf.insert_json5("transport/shared_memory/transport_optimization/pool_size",
                           json.dumps(settings.shm_pool_mib << 20))
+    if settings.tls_root_ca:
+        conf.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(_readable(settings.tls_root_ca))))
+    if settings.user:
+        conf.insert_json5("transport/auth/usrpwd/user", json.dumps(settings.user))
+        conf.insert_json5("transport/auth/usrpwd/password", json.dumps(bus_password(settings)))
     return conf
+
+
+def bus_password(settings: BusSettings) -> str:
+    """The password of ``settings.user``, from the setting or its file."""
+    if settings.password is not None:
+        return settings.password.get_secret_value()
+    return _readable(settings.password_file).read_text().rstrip("\r\n")
+
+
+def _readable(path: Path) -> Path:
+    # Zenoh reports a missing file only as "unable to connect"; name it here instead
+    if not path.is_file():
+        raise ConfigError(f"bus secret file {path} does not exist (KMVIPE_BUS_PASSWORD_FILE / KMVIPE_BUS_TLS_ROOT_CA; "
+                          "docs/SECURITY.md says how to make them)")
+    return path
 
 
 def open_session(settings: BusSettings) -> zenoh.Session:
@@ -44,8 +65,10 @@ def open_session(settings: BusSettings) -> zenoh.Session:
     except zenoh.ZError as exc:
         raise BusError(
             f"cannot open the Zenoh session (mode {settings.mode}, listen {settings.listen}, connect "
-            f"{settings.connect}): {exc}. Check that a router runs at the connect endpoint and that listen "
-            "endpoints are free (KMVIPE_BUS_CONNECT / KMVIPE_BUS_LISTEN)."
+            f"{settings.connect}, user {settings.user or 'none'}): {exc}. Check that a router runs at the connect "
+            "endpoint and that listen endpoints are free (KMVIPE_BUS_CONNECT / KMVIPE_BUS_LISTEN); a secured router "
+            "also refuses a missing or wrong credential (KMVIPE_BUS_USER, KMVIPE_BUS_PASSWORD_FILE) and a tls/ "
+            "endpoint needs the CA that signed it (KMVIPE_BUS_TLS_ROOT_CA; docs/SECURITY.md)."
         ) from exc
 
 

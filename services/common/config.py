@@ -8,7 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import field_validator
+from pydantic import SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 ENDPOINT_PREFIXES = ("tcp/", "udp/", "tls/", "quic/", "ws/", "unixsock-stream/")
@@ -36,6 +36,15 @@ class BusSettings(BaseSettings):
     (credit window × frame bytes); when full, payloads silently go over the socket instead."""
     zenoh_config: Path | None = None
     """A Zenoh JSON5 config file to start from; the fields above override it."""
+    user: str = ""
+    """User name to give a router that asks for credentials (the secured router of docs/SECURITY.md)."""
+    password: SecretStr | None = None
+    """That user's password; prefer ``password_file`` outside tests (the environment shows in ``ps e``)."""
+    password_file: Path | None = None
+    """A file holding the password (a docker secret, ``kmvipe bus users``); a trailing newline is ignored."""
+    tls_root_ca: Path | None = None
+    """The CA that signed the router's certificate (``ca.pem`` of ``kmvipe bus certs``); needed to connect to a
+    ``tls/`` endpoint: without it Zenoh checks the router against the public web CAs and refuses ours."""
 
     @field_validator("listen", "connect")
     @classmethod
@@ -46,6 +55,15 @@ class BusSettings(BaseSettings):
                     f"endpoint {ep!r} must start with one of {', '.join(ENDPOINT_PREFIXES)} (e.g. tcp/127.0.0.1:7447)"
                 )
         return value
+
+    @model_validator(mode="after")
+    def _credentials(self) -> "BusSettings":
+        secrets = (self.password is not None) + (self.password_file is not None)
+        if secrets > 1:
+            raise ValueError("set one of KMVIPE_BUS_PASSWORD and KMVIPE_BUS_PASSWORD_FILE, not both")
+        if bool(self.user) != bool(secrets):
+            raise ValueError("a bus credential needs both KMVIPE_BUS_USER and KMVIPE_BUS_PASSWORD(_FILE)")
+        return self
 
 
 class LogSettings(BaseSettings):

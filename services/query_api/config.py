@@ -18,7 +18,8 @@ class QuerySettings(BaseSettings):
     port: int = Field(8000, ge=0, le=65535)
     """HTTP port (0: any free port)."""
     api_key: str = ""
-    """When set, every /v1 and /metrics request needs the header ``X-API-Key: <api_key>``."""
+    """When set, every /v1 and /metrics request needs the header ``X-API-Key: <api_key>``, except the liveness
+    probe ``/v1/health``."""
     cors_origins: list[str] = []
     """Origins allowed to call the API from a browser (JSON list; ``["*"]`` for any)."""
     max_body_bytes: int = Field(8 << 20, ge=1024)

@@ -24,6 +24,8 @@ from .streaming import ply_stream
 STREAM = Path(description="Stream name (the <s> in kmvipe/<s>/...).", examples=["cam0"])
 ERRORS = {code: {"model": m.ErrorResponse} for code in (401, 404, 409, 413, 422, 502, 503, 504)}
 router = APIRouter(prefix="/v1", responses=ERRORS)
+public = APIRouter(prefix="/v1")
+"""Routes that answer without the API key: liveness only, so probes and load balancers need no secret."""
 
 
 def _gateway(request: Request) -> Gateway:
@@ -193,7 +195,7 @@ async def streams(request: Request) -> m.StreamsResponse:
     return m.StreamsResponse(streams=[m.StreamInfo(name=k, map=v["map"], poses=v["poses"]) for k, v in sorted(found.items())])
 
 
-@router.get("/health", response_model=m.HealthResponse, summary="Liveliness of every service")
+@public.get("/health", response_model=m.HealthResponse, summary="Liveliness of every service (no API key needed)")
 async def health(request: Request) -> m.HealthResponse:
     alive = await run_in_threadpool(_gateway(request).health)
     services = {k: m.ServiceHealth(alive=bool(v), instances=v) for k, v in alive.items()}
