@@ -1,11 +1,13 @@
 """docker-compose.yml names only services that exist as `kmvipe service NAME`, pins the router to the Python
-package's Zenoh release, sets only settings that exist, and passes `docker-compose config -q` where docker-compose
-is installed (CI)."""
+package's Zenoh release, sets only settings that exist, checks each service's health with a command that works,
+and passes `docker-compose config -q` where docker-compose is installed (CI)."""
 from __future__ import annotations
 
 import importlib.metadata
 import shutil
 import subprocess
+import sys
+from types import SimpleNamespace
 
 import pytest
 import yaml
@@ -50,13 +52,14 @@ def test_docker_compose_config_is_valid():
 
 def _settings_classes() -> dict[str, type]:
     from services.ba.settings import BaSettings
-    from services.common.config import BusSettings, LogSettings
+    from services.common.config import BusSettings, LogSettings, MetricsSettings
     from services.features.config import FeaturesSettings
     from services.ingest.config import IngestSettings
     from services.mapstore.config import MapstoreSettings
     from services.query_api.config import QuerySettings
 
-    classes = (BusSettings, LogSettings, IngestSettings, FeaturesSettings, BaSettings, MapstoreSettings, QuerySettings)
+    classes = (BusSettings, LogSettings, MetricsSettings, IngestSettings, FeaturesSettings, BaSettings,
+               MapstoreSettings, QuerySettings)
     return {cls.model_config["env_prefix"]: cls for cls in classes}
 
 
@@ -74,3 +77,27 @@ def test_every_variable_set_in_a_container_is_a_setting(compose):
             field = var[len(prefix):].lower()
             assert field in classes[prefix].model_fields, f"{name}: {var} is not a setting of {classes[prefix].__name__}"
 
+
+@pytest.mark.parametrize("ready", [False, True])
+def test_healthchecks_ask_readyz_and_fail_until_ready(compose, ready):
+    """Every pipeline service but the gateway (its /v1/health) serves its endpoints and is healthy only once ready:
+    the compose command itself, run against a real metrics server on the port the container's environment names."""
+    from services.common.metrics import HealthServer
+
+    probe = SimpleNamespace(service="ba", instance="test", is_open=True, is_ready=ready)
+    server = HealthServer(probe, "127.0.0.1", 0).start()
+    try:
+        for name in PIPELINE:
+            spec = compose["services"][name]
+            command = spec["healthcheck"]["test"]
+            assert command[0] == "CMD"
+            if name == "query_api":
+                assert "/v1/health" in command[-1]
+                continue
+            assert "/readyz" in command[-1] and spec["environment"]["KMVIPE_METRICS_HOST"] == "0.0.0.0"
+            env = {"KMVIPE_METRICS_PORT": str(server.port), "PATH": ""}  # the container's port, here a free one
+            assert command[1] == "python"
+            result = subprocess.run([sys.executable, *command[2:]], env=env, capture_output=True, timeout=30)
+            assert (result.returncode == 0) == ready, (name, result.stderr)
+    finally:
+        server.close()

@@ -215,7 +215,10 @@ def test_serve_writes_the_outputs_at_end_of_stream(tmp_path):
 
 
 # --- one default stream -----------------------------------------------------------------------------------------
-def test_every_command_and_service_defaults_to_the_same_stream(tmp_path, monkeypatch):
+def test_every_source_defaults_to_one_stream_and_services_serve_every_stream(tmp_path, monkeypatch):
+    """Issue 11: services started without settings must meet `kmvipe publish`. Every source and command defaults to
+    one stream (cam0) and the services serve every stream a source announces (issue 14), so they meet it and any
+    other."""
     from services.ba.config import BASettings
     from services.ba.settings import BaSettings
     from services.features.config import FeaturesSettings
@@ -226,9 +229,9 @@ def test_every_command_and_service_defaults_to_the_same_stream(tmp_path, monkeyp
     for name in [n for n in os.environ if n.startswith("KMVIPE_")]:
         monkeypatch.delenv(name)
     assert keys.check_name(keys.DEFAULT_STREAM) == "cam0"  # what `kmvipe publish` always sent
-    streams = {cls.__name__: cls().stream
-               for cls in (IngestSettings, FeaturesSettings, BASettings, BaSettings, MapstoreSettings)}
-    streams["RunSettings"] = RunSettings(source=SPEC, out=tmp_path).stream
+    services = {cls.__name__: cls().stream for cls in (FeaturesSettings, BASettings, BaSettings, MapstoreSettings)}
+    assert services == dict.fromkeys(services, keys.ALL_STREAMS)
+    streams = {"IngestSettings": IngestSettings().stream, "RunSettings": RunSettings(source=SPEC, out=tmp_path).stream}
     parser = build_parser()
     for argv in (["run", "video.mp4"], ["demo"], ["publish", "0", "--connect", "tcp/127.0.0.1:7447"],
                  ["query", "chair"], ["map", "export", "--db", "map.db", "--out", "export"]):
@@ -236,10 +239,13 @@ def test_every_command_and_service_defaults_to_the_same_stream(tmp_path, monkeyp
     assert streams == dict.fromkeys(streams, keys.DEFAULT_STREAM)
 
 
-def test_docker_compose_gives_every_service_the_default_stream():
+def test_docker_compose_services_serve_every_stream_and_its_ingest_the_default_one():
     import yaml
 
     compose = yaml.safe_load((REPO / "docker-compose.yml").read_text())
     for name in SERVICES:
         env = compose["services"][name]["environment"]
-        assert env[f"KMVIPE_{name.upper()}_STREAM"] == "${KMVIPE_STREAM:-" + keys.DEFAULT_STREAM + "}"
+        if name == "ingest":
+            assert env["KMVIPE_INGEST_STREAM"] == "${KMVIPE_STREAM:-" + keys.DEFAULT_STREAM + "}"
+        else:  # no stream setting: the default, every stream
+            assert f"KMVIPE_{name.upper()}_STREAM" not in env

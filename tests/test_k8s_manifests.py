@@ -217,3 +217,19 @@ def test_the_durable_map_lies_on_the_shard_volume(resources):
     for var in ("KMVIPE_MAPSTORE_DB_PATH", "KMVIPE_MAPSTORE_EXPORT_DIR"):
         path = PurePosixPath(_env(container)[var]["value"])
         assert any(path.is_relative_to(m) and name in claims for m, name in mounts.items()), f"{var} not on a claim"
+
+
+def test_stateful_services_serve_every_stream_and_are_probed_on_their_metrics_port(resources):
+    """No stream setting (the default serves every stream a source announces); readiness asks /readyz and liveness
+    /livez on the port KMVIPE_METRICS_PORT opens to the kubelet (services/common/metrics.py)."""
+    for name, sts in _of_kind(resources, "StatefulSet").items():
+        container = sts["spec"]["template"]["spec"]["containers"][0]
+        env = _env(container)
+        assert not [var for var in env if var.endswith("_STREAM")], f"{name} is pinned to one stream"
+        assert env["KMVIPE_METRICS_HOST"]["value"] == "0.0.0.0"
+        ports = {p["name"]: p["containerPort"] for p in container["ports"]}
+        assert ports["metrics"] == int(env["KMVIPE_METRICS_PORT"]["value"])
+        for probe, path in (("readinessProbe", "/readyz"), ("livenessProbe", "/livez")):
+            assert container[probe]["httpGet"] == {"path": path, "port": "metrics"}, f"{name} {probe}"
+        annotations = sts["spec"]["template"]["metadata"]["annotations"]
+        assert annotations["prometheus.io/port"] == env["KMVIPE_METRICS_PORT"]["value"]

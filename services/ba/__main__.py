@@ -1,4 +1,6 @@
-"""``python -m services.ba`` / ``kmvipe service ba``: settings from KMVIPE_BA_* and KMVIPE_BUS_*."""
+"""``python -m services.ba`` / ``kmvipe service ba``: settings from KMVIPE_BA_* and KMVIPE_BUS_*.
+
+With ``KMVIPE_BA_STREAM=*`` (the default) it serves every stream a source announces, each with its own state."""
 from __future__ import annotations
 
 import sys
@@ -6,11 +8,17 @@ import sys
 from services.ba.service import build_state, run
 from services.ba.settings import BaSettings
 from services.common.service_main import service_main
+from services.common.streams import serve
 
 
 def _body(bus, stop) -> None:
     cfg = BaSettings()
-    run(cfg, bus, stop, build_state(cfg))
+
+    def one(stream, stream_bus, stream_stop):
+        settings = cfg.model_copy(update={"stream": stream})
+        run(settings, stream_bus, stream_stop, build_state(settings))
+
+    serve(cfg.stream, bus, stop, one)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -11,7 +11,7 @@ import torch
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from services.ba.core.params import BAParams, FlowParams, RobustParams
-from services.common.keys import DEFAULT_STREAM
+from services.common.keys import ALL_STREAMS
 
 
 class BASettings(BaseSettings):
@@ -19,8 +19,9 @@ class BASettings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="KMVIPE_BA_", env_file=".env", extra="ignore")
 
-    stream: str = DEFAULT_STREAM
-    """Stream name ``<s>`` in ``kmvipe/<s>/...``."""
+    stream: str = ALL_STREAMS
+    """The stream served (``kmvipe/<stream>/...``); ``*``: every stream a source announces, each with its own state
+    (services/common/streams.py; replicas split them by ``KMVIPE_SHARD_*``)."""
     device: str = "auto"
     """``auto`` (CUDA when available, else CPU), ``cpu`` or ``cuda[:n]``."""
     window: int = 25

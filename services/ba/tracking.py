@@ -45,7 +45,7 @@ class TrackingLoop:
         self._skipped: deque[FrameLite | Keyframe] = deque()  # frames the inbox dropped: predicted poses only
         inbox.on_drop = lambda delivery: self._skipped.append(delivery.msg)
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="tracking", daemon=True)
+        self._thread = threading.Thread(target=self._run, name=f"stream-{stream}/tracking", daemon=True)
 
     def start(self) -> None:
         self._thread.start()

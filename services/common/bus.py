@@ -1,5 +1,6 @@
 """The Zenoh bus every service uses: session from typed settings, typed publish/subscribe, queryables,
 liveliness, and counting of bad payloads (a bad payload is logged once per kind and dropped — never a crash).
+Every message in and out, bad payload, query and inbox drop is also counted in :mod:`services.common.metrics`.
 """
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from typing import Callable, Iterable
 
 import zenoh
 
-from . import keys
+from . import keys, metrics
 from .config import BusSettings
 from .errors import BusError, ConfigError, DecodeError, ServiceTimeout
 from .schema import Message, decode, encode
@@ -83,6 +84,7 @@ class PayloadStats:
         with self._lock:
             first = (key, reason) not in self.counts
             self.counts[(key, reason)] += 1
+        metrics.count_bad_payload(key, reason)
         if first:
             log.warning("dropped bad payload (logged once per kind)", extra={"key": key, "reason": reason, "detail": detail})
 
@@ -117,6 +119,8 @@ class Inbox:
         self._ready = threading.Condition()
         self.dropped_by_kind: Counter[str] = Counter()
         self.overflowed = 0
+        self.last_key: str | None = None  # the stream its depth is reported under (metrics)
+        metrics.INBOXES.track(self)
 
     @property
     def dropped(self) -> int:
@@ -124,6 +128,7 @@ class Inbox:
 
     def put(self, item: Delivery) -> None:
         with self._ready:
+            self.last_key = item.key
             if len(self._items) >= self.maxsize:
                 victim = self._make_room(item)
                 if victim is item:
@@ -135,6 +140,7 @@ class Inbox:
         """The delivery dropped to take ``item`` (``item`` itself when it is the one to go), or None."""
         if self.lossless or not self.droppable:
             self.overflowed += 1
+            metrics.count_inbox_overflow(item.key)
             if self.overflowed == 1 or not self.droppable:
                 log.warning("inbox over its bound; kept", extra={"key": item.key, "seq": item.msg.seq})
             return None
@@ -145,8 +151,10 @@ class Inbox:
             victim = item
         else:
             self.overflowed += 1
+            metrics.count_inbox_overflow(item.key)
             return None
         self.dropped_by_kind[victim.msg.KIND] += 1
+        metrics.count_inbox_drop(victim.key, victim.msg.KIND)
         log.info("inbox full: dropped the oldest frame", extra={"key": victim.key, "seq": victim.msg.seq})
         if self.on_drop is not None:  # called with the inbox locked: it must only take note
             self.on_drop(victim)
@@ -180,6 +188,17 @@ class Bus:
         self._publish_lock = threading.Lock()
         self._handles: list = []
         self._token = None
+        self._stage_clock = metrics.StageClock()
+
+    @property
+    def is_open(self) -> bool:
+        """Whether the Zenoh session is open (``/livez``)."""
+        return not self.session.is_closed()
+
+    @property
+    def is_ready(self) -> bool:
+        """Whether :meth:`ready` declared the liveliness token (``/readyz``)."""
+        return self._token is not None
 
     def ready(self) -> None:
         """Declare this instance's liveliness token. Services call it once their subscriptions are declared, so
@@ -192,6 +211,7 @@ class Bus:
         """Send ``msg`` reliably on ``key``. By default a congested link blocks (lossless); with
         ``drop_if_congested`` the message is dropped instead (real-time streams)."""
         self.put(key, encode(msg), drop_if_congested=drop_if_congested)
+        self._stage_clock.published(key, msg.seq)
 
     def put(self, key: str, payload: bytes, *, drop_if_congested: bool = False) -> None:
         with self._publish_lock:  # services publish from more than one thread (ba: tracking and mapping)
@@ -202,27 +222,34 @@ class Bus:
                                                      reliability=zenoh.Reliability.RELIABLE)
                 self._publishers[(key, drop_if_congested)] = pub
         pub.put(payload)
+        metrics.count_message(metrics.OUT, key, len(payload))  # handed to Zenoh (a congested DROP link may lose it)
 
-    def subscribe(self, key: str, on_message: Callable[[Delivery], None], expect: Iterable[type[Message]] = ()) -> None:
-        """Call ``on_message`` (on a Zenoh thread) for every valid message on ``key``; bad payloads are counted."""
+    def subscribe(self, key: str, on_message: Callable[[Delivery], None], expect: Iterable[type[Message]] = ()):
+        """Call ``on_message`` (on a Zenoh thread) for every valid message on ``key``; bad payloads are counted.
+        Returns the subscriber (undeclared by :meth:`close`, or earlier by :meth:`release`)."""
         allowed = tuple(expect)
 
         def _callback(sample: zenoh.Sample) -> None:
             key_str = str(sample.key_expr)
+            payload = sample.payload.to_bytes()
             try:
-                msg = decode(sample.payload.to_bytes())
+                msg = decode(payload)
                 if allowed and not isinstance(msg, allowed):
                     raise DecodeError(f"unexpected message kind {msg.KIND!r} on {key_str}")
             except DecodeError as exc:
                 self.stats.record(key_str, "decode", str(exc))
                 return
+            metrics.count_message(metrics.IN, key_str, len(payload))
+            self._stage_clock.arrived(key_str, msg.seq)
             try:
                 on_message(Delivery(key_str, msg))
             except Exception as exc:  # the error boundary of a callback: log, count, keep the session alive
                 log.exception("handler failed", extra={"key": key_str, "seq": msg.seq})
                 self.stats.record(key_str, "handler", repr(exc))
 
-        self._handles.append(self.session.declare_subscriber(key, _callback))
+        handle = self.session.declare_subscriber(key, _callback)
+        self._handles.append(handle)
+        return handle
 
     def inbox(self, subscriptions: dict[str, Iterable[type[Message]]], maxsize: int = 1024, lossless: bool = True,
               droppable: tuple[type[Message], ...] = ()) -> Inbox:
@@ -234,11 +261,12 @@ class Bus:
         return box
 
     # --- queries -------------------------------------------------------------------------------------
-    def serve(self, key: str, handler: Callable[[str, dict, bytes | None], bytes]) -> None:
+    def serve(self, key: str, handler: Callable[[str, dict, bytes | None], bytes]):
         """Declare a queryable; ``handler(key, parameters, payload) -> reply bytes``. Errors become error
         replies with their message, never a crash."""
 
         def _callback(query: zenoh.Query) -> None:
+            metrics.count_query(str(query.key_expr))
             payload = query.payload.to_bytes() if query.payload is not None else None
             try:
                 params = dict(query.selector.parameters)
@@ -247,7 +275,37 @@ class Bus:
                 self.stats.record(str(query.key_expr), "query", repr(exc))
                 query.reply_err(f"{type(exc).__name__}: {exc}")
 
-        self._handles.append(self.session.declare_queryable(key, _callback))
+        handle = self.session.declare_queryable(key, _callback)
+        self._handles.append(handle)
+        return handle
+
+    def release(self, handles: Iterable) -> None:
+        """Undeclare subscribers and queryables before :meth:`close` (a stream a service stopped serving)."""
+        for handle in handles:
+            if handle in self._handles:
+                self._handles.remove(handle)
+                handle.undeclare()
+
+    # --- sources -------------------------------------------------------------------------------------
+    def announce(self, stream: str):
+        """Declare that this instance streams ``stream`` (services serving every stream start on it); returns the
+        token, which the caller undeclares when the stream ends."""
+        return self.session.liveliness().declare_token(keys.source(stream, self.instance))
+
+    def watch_sources(self, on_change: Callable[[str, str, bool], None]) -> None:
+        """``on_change(stream, source key, present)`` for every source token there is and every one that appears
+        or goes (a Zenoh thread; tokens declared before this call are reported too)."""
+
+        def _callback(sample: zenoh.Sample) -> None:
+            key = str(sample.key_expr)
+            try:
+                stream = keys.parse_source(key)
+            except (ValueError, ConfigError) as exc:  # a foreign token on our keys: counted, ignored
+                self.stats.record(key, "source", str(exc))
+                return
+            on_change(stream, key, sample.kind == zenoh.SampleKind.PUT)
+
+        self._handles.append(self.session.liveliness().declare_subscriber(keys.source(), _callback, history=True))
 
     def request(self, selector: str, payload: bytes | None = None, timeout: float = 5.0, service: str = "") -> bytes:
         """Ask one queryable; the first OK reply's bytes. Raises ServiceTimeout, or RuntimeError for an error reply."""

@@ -1,14 +1,15 @@
-"""Typed settings shared by every service: the Zenoh bus and logging.
+"""Typed settings shared by every service: the Zenoh bus, logging, and the metrics and health endpoints.
 
-Each is built once from the environment (``KMVIPE_BUS_*``, ``KMVIPE_LOG_*``) or an optional ``.env`` file;
-defaults work on one machine. Lists are JSON in the environment: ``KMVIPE_BUS_CONNECT='["tcp/10.0.0.2:7447"]'``.
+Each is built once from the environment (``KMVIPE_BUS_*``, ``KMVIPE_LOG_*``, ``KMVIPE_METRICS_*``) or an optional
+``.env`` file; defaults work on one machine. Lists are JSON in the environment:
+``KMVIPE_BUS_CONNECT='["tcp/10.0.0.2:7447"]'``.
 """
 from __future__ import annotations
 
 from pathlib import Path
 from typing import Literal
 
-from pydantic import SecretStr, field_validator, model_validator
+from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 ENDPOINT_PREFIXES = ("tcp/", "udp/", "tls/", "quic/", "ws/", "unixsock-stream/")
@@ -74,3 +75,17 @@ class LogSettings(BaseSettings):
     level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
     format: Literal["text", "json"] = "text"
     """text: ``time level logger message key=value…``; json: one object per line for log shippers."""
+
+
+class MetricsSettings(BaseSettings):
+    """The metrics and health endpoints of a service process (``/metrics``, ``/livez``, ``/readyz``;
+    :mod:`services.common.metrics`)."""
+
+    model_config = SettingsConfigDict(env_prefix="KMVIPE_METRICS_", env_file=".env", extra="ignore")
+
+    port: int = Field(0, ge=0, le=65535)
+    """TCP port of the endpoints; 0 (the default) serves none, so the child processes of ``kmvipe run`` and several
+    runs on one host never compete for a port. docker-compose.yml and deploy/k8s set 9464 (one process per
+    container)."""
+    host: str = "127.0.0.1"
+    """Interface to bind; 0.0.0.0 where a scraper or the kubelet reaches the process from outside (containers)."""

@@ -1,7 +1,8 @@
 """Key expressions of the KM-ViPE bus. Every key is built here; no service spells one by hand.
 
 Layout: ``kmvipe/<stream>/<topic>``; liveliness tokens under ``kmvipe/@alive/<service>/<instance>``
-(``@alive`` is a verbatim chunk, so stream wildcards like ``kmvipe/*/frame`` never match it).
+(``@alive`` is a verbatim chunk, so stream wildcards like ``kmvipe/*/frame`` never match it), and a source's token
+``kmvipe/<stream>/@source/<instance>`` while it streams: services that serve every stream start on it.
 """
 from __future__ import annotations
 
@@ -11,6 +12,10 @@ from .errors import ConfigError
 
 ROOT = "kmvipe"
 ALIVE = f"{ROOT}/@alive"
+
+SOURCE = "@source"
+ALL_STREAMS = "*"
+"""A service's ``stream`` setting that serves every stream a source announces (:func:`source`)."""
 
 DEFAULT_STREAM = "cam0"
 """The stream every command and service uses unless told otherwise (``--stream``, ``KMVIPE_<SERVICE>_STREAM``):
@@ -82,3 +87,20 @@ def stream_of(key: str) -> str:
     if len(parts) < 3 or parts[0] != ROOT:
         raise ValueError(f"not a KM-ViPE stream key: {key!r}")
     return parts[1]
+
+
+def source(stream: str = "*", instance: str = "*") -> str:
+    """Liveliness token of a source streaming ``stream`` (a wildcard selector with the defaults)."""
+    if stream != "*":
+        check_name(stream)
+    if instance not in ("*", "**"):
+        check_name(instance, "instance")
+    return f"{ROOT}/{stream}/{SOURCE}/{instance}"
+
+
+def parse_source(key: str) -> str:
+    """The stream of a :func:`source` token key."""
+    parts = str(key).split("/")
+    if len(parts) != 4 or parts[0] != ROOT or parts[2] != SOURCE:
+        raise ValueError(f"not a source token key: {key!r}")
+    return check_name(parts[1])

@@ -1,15 +1,18 @@
-"""The one error boundary of a service process: logging, signals, the bus, and a clear exit on bad settings."""
+"""The one error boundary of a service process: logging, signals, the bus, the metrics and health endpoints, and a
+clear exit on bad settings."""
 from __future__ import annotations
 
 import logging
+import re
 import sys
 import threading
 from typing import Callable
 
 from pydantic import ValidationError
 
+from . import metrics
 from .bus import Bus
-from .config import BusSettings
+from .config import BusSettings, MetricsSettings
 from .errors import KmVipeError
 from .lifecycle import limit_blas_threads, stop_on_signals, tune_malloc_for_frames, tune_malloc_for_tensors
 from .logs import setup_logging
@@ -17,6 +20,22 @@ from .logs import setup_logging
 log = logging.getLogger(__name__)
 
 ServiceBody = Callable[[Bus, threading.Event], "int | object"]
+
+_STREAM_THREAD = re.compile(r"^stream-(?P<stream>[A-Za-z0-9_\-]{1,64})(?:/|$)")
+"""A stream's thread: ``stream-<name>`` (a StreamHost worker, services/common/streams.py) or ``stream-<name>/<role>``
+(a thread that worker starts)."""
+
+
+class StreamField(logging.Filter):
+    """Gives a record logged on a stream's thread the ``stream`` field when it does not name one, so every line a
+    multi-stream service logs for a stream carries it."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if not hasattr(record, "stream"):
+            match = _STREAM_THREAD.match(record.threadName or "")
+            if match is not None:
+                record.stream = match["stream"]
+        return True
 
 
 def service_main(name: str, body: ServiceBody, handles_frames: bool = False, handles_tensors: bool = False,
@@ -27,8 +46,12 @@ def service_main(name: str, body: ServiceBody, handles_frames: bool = False, han
     ``handles_frames`` tunes the allocator for frame-sized buffers (see ``tune_malloc_for_frames``),
     ``handles_tensors`` for large tensor temporaries (``tune_malloc_for_tensors``; it wins when both are set).
     ``blas_threads`` caps numpy's BLAS pool (``limit_blas_threads``; None leaves it).
+    With ``KMVIPE_METRICS_PORT`` set, ``/metrics``, ``/livez`` and ``/readyz`` are served while the bus is open
+    (:mod:`services.common.metrics`).
     """
     setup_logging(name)
+    for handler in logging.getLogger().handlers:
+        handler.addFilter(StreamField())
     stop = stop_on_signals()
     if handles_frames:
         tune_malloc_for_frames()
@@ -37,7 +60,8 @@ def service_main(name: str, body: ServiceBody, handles_frames: bool = False, han
     if blas_threads is not None:
         limit_blas_threads(blas_threads)
     try:
-        with Bus(BusSettings(), name) as bus:
+        endpoints = MetricsSettings()
+        with Bus(BusSettings(), name) as bus, metrics.serving(endpoints, bus):
             result = body(bus, stop)
     except ValidationError as exc:
         print(f"{name}: invalid settings (check the KMVIPE_* environment variables):\n{exc}", file=sys.stderr)

@@ -1,16 +1,25 @@
-"""``python -m services.features`` / ``kmvipe service features``: settings from KMVIPE_FEATURES_* and KMVIPE_BUS_*."""
+"""``python -m services.features`` / ``kmvipe service features``: settings from KMVIPE_FEATURES_* and KMVIPE_BUS_*.
+
+With ``KMVIPE_FEATURES_STREAM=*`` (the default) it serves every stream a source announces, the models loaded once."""
 from __future__ import annotations
 
 import sys
 
 from ..common.service_main import service_main
+from ..common.streams import serve
 from .config import FeaturesSettings
-from .service import build_state, run
+from .service import build_state, load_models, run
 
 
 def _body(bus, stop) -> None:
     cfg = FeaturesSettings()
-    run(cfg, bus, stop, build_state(cfg))
+    models = load_models(cfg)
+
+    def one(stream, stream_bus, stream_stop):
+        settings = cfg.model_copy(update={"stream": stream})
+        run(settings, stream_bus, stream_stop, build_state(settings, models))
+
+    serve(cfg.stream, bus, stop, one)
 
 
 def main(argv: list[str] | None = None) -> int:

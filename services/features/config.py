@@ -9,7 +9,7 @@ from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from ..common.errors import ConfigError
-from ..common.keys import DEFAULT_STREAM
+from ..common.keys import ALL_STREAMS
 from .core.depth import DepthParams
 from .core.geometry import ResolutionParams
 from .core.keyframes import KeyframeParams
@@ -28,8 +28,9 @@ class FeaturesSettings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="KMVIPE_FEATURES_", env_file=".env", extra="ignore")
 
-    stream: str = DEFAULT_STREAM
-    """Stream name (``kmvipe/<stream>/...``)."""
+    stream: str = ALL_STREAMS
+    """The stream served (``kmvipe/<stream>/...``); ``*``: every stream a source announces, each with its own state
+    (services/common/streams.py; replicas split them by ``KMVIPE_SHARD_*``)."""
     backbone: str = "dinov2-vits14-imgfocus"
     """Registry name of the DINO backbone (``kmvipe models list``), or ``synth-oracle``: the test double of
     :mod:`services.features.oracle` (exact label features of the synthetic world named by ``oracle_source``)."""
@@ -64,6 +65,11 @@ class FeaturesSettings(BaseSettings):
     """Lossless: no credit while ba is this many frames (or keyframes) behind what features published."""
     downstream_keyframes: int = 6
     """Lossless: no credit while the mapstore is this many keyframes behind."""
+    await_downstream: list[str] = ["ba", "mapstore"]
+    """Downstream stages whose first progress report a stream's first credit waits for (they start on the same
+    source announcement), so no keyframe goes out before they subscribed; [] never waits."""
+    downstream_wait_s: float = 10.0
+    """How long a stream's first credit waits for the stages of ``await_downstream`` (a deployment without one)."""
     downstream_ttl_s: float = 5.0
     """A downstream stage silent this long no longer holds the stream back (it died; its restart catches up)."""
     semantics_nice: int = 19

@@ -31,7 +31,7 @@ _FLUSH = object()
 class SemanticsWorker:
     """Describes and codes keyframes on its own thread; results come back through :meth:`take`."""
 
-    def __init__(self, core: FeaturesCore, codes: CodeQueue, niceness: int = 0):
+    def __init__(self, core: FeaturesCore, codes: CodeQueue, niceness: int = 0, stream: str = ""):
         self.core, self.codes, self.niceness = core, codes, niceness
         self._pending: deque = deque()
         self._results: deque[Coded] = deque()
@@ -39,7 +39,8 @@ class SemanticsWorker:
         self._busy = False
         self._stop = False
         self.skipped = 0  # real-time keyframes the backbone never described
-        self._thread = threading.Thread(target=self._run, name="semantics", daemon=True)
+        name = f"stream-{stream}/semantics" if stream else "semantics"  # the stream's name in its log lines
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
 
     def start(self) -> None:
         self._thread.start()

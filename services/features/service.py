@@ -69,10 +69,12 @@ class FeaturesState:
     downstream: dict[str, tuple[int, float]] = field(default_factory=dict)
     sent: deque = field(default_factory=deque)
     inbox: Inbox | None = None  # the service loop's, whose real-time drops count for this stream
+    started: float = field(default_factory=time.monotonic)  # when this stream's state was made
 
 
-def build_state(cfg: FeaturesSettings) -> FeaturesState:
-    """Load the models named in the settings (one clear ModelError if one is missing)."""
+def load_models(cfg: FeaturesSettings) -> tuple:
+    """(backbone, depth model or None) named in the settings, loaded once per process and shared by every stream
+    (one clear ModelError if one is missing)."""
     torch.set_num_threads(cfg.threads)
     store = ModelStore(cfg.models_dir)
     if cfg.backbone == ORACLE_BACKBONE:  # test double: exact synthetic-world labels instead of a model
@@ -82,10 +84,16 @@ def build_state(cfg: FeaturesSettings) -> FeaturesState:
             lambda: load_backbone(cfg.backbone, store, cfg.device, cfg.runtime, cfg.threads, cfg.half),
             cfg.semantics_nice)
     depth = load_depth_model(cfg.depth_model, store, cfg.device, cfg.half) if cfg.depth_model else None
+    return backbone, depth
+
+
+def build_state(cfg: FeaturesSettings, models: tuple | None = None) -> FeaturesState:
+    """One stream's state around ``models`` (:func:`load_models`; loaded here when not given)."""
+    backbone, depth = models if models is not None else load_models(cfg)
     device = resolve_device(cfg.device)
     core = FeaturesCore(cfg.params(getattr(backbone, "patch_size", 14), device.type == "cuda"), backbone,
                         lambda image: normalise_rgb(image, device), depth)
-    semantics = SemanticsWorker(core, CodeQueue(core.params.pca, backbone.output_space), cfg.semantics_nice)
+    semantics = SemanticsWorker(core, CodeQueue(core.params.pca, backbone.output_space), cfg.semantics_nice, cfg.stream)
     return FeaturesState(core, semantics, cfg.stream)
 
 
@@ -216,6 +224,11 @@ def credit_limit(state: FeaturesState, cfg: FeaturesSettings, now: float) -> int
     """Highest frame seq ingest may send. In lossless mode nothing beyond what is handled while the backbone or
     a live downstream stage (ba, mapstore: their ``progress``) is too far behind; in real time, no hold."""
     hold = state.last_seq
+    # a stream served by every-stream services: its ba and mapstore workers start when the source announces it,
+    # as this one does; the first frames wait until they have said they are there (or for downstream_wait_s)
+    missing = [name for name in cfg.await_downstream if not any(c.startswith(f"{name}-") for c in state.downstream)]
+    if missing and now - state.started < cfg.downstream_wait_s:
+        return hold
     if state.realtime:
         return hold + cfg.credit_window
     if state.semantics.backlog() >= cfg.codes_backlog:

@@ -67,6 +67,14 @@ def run(cfg: IngestSettings, bus: Bus, stop: threading.Event, source: Source | N
     gate = CreditGate(cfg.credit_ttl_s)
     bus.subscribe(keys.topic(cfg.stream, keys.CREDIT), gate.on_credit, expect=[Credit])
     bus.ready()
+    token = bus.announce(cfg.stream)  # services that serve every stream start this one's workers on it
+    try:
+        return _stream(cfg, bus, stop, source, gate)
+    finally:
+        token.undeclare()
+
+
+def _stream(cfg: IngestSettings, bus: Bus, stop: threading.Event, source: Source, gate: CreditGate) -> IngestCounters:
     if not _await_first_consumer(gate, cfg.wait_for_consumer_s, stop):
         # lossless gives up with a clear error below; realtime plays on and drops what nobody takes
         log.warning("no consumer has granted credit yet", extra={"stream": cfg.stream, "waited_s": cfg.wait_for_consumer_s})

@@ -1,17 +1,27 @@
-"""``python -m services.mapstore``: settings from KMVIPE_MAPSTORE_* and KMVIPE_BUS_*."""
+"""``python -m services.mapstore``: settings from KMVIPE_MAPSTORE_* and KMVIPE_BUS_*.
+
+With ``KMVIPE_MAPSTORE_STREAM=*`` (the default) it serves every stream a source announces, one map database each
+(``db_path``'s ``{stream}``)."""
 
 from __future__ import annotations
 
 import sys
 
 from services.common.service_main import service_main
+from services.common.streams import serve
 from services.mapstore.config import MapstoreSettings
 from services.mapstore.service import run
 
 
+def _body(bus, stop) -> None:
+    cfg = MapstoreSettings()
+    serve(cfg.stream, bus, stop,
+          lambda stream, stream_bus, stream_stop: run(cfg.model_copy(update={"stream": stream}), stream_bus,
+                                                      stream_stop).close())
+
+
 def main(argv: list[str] | None = None) -> int:
-    return service_main("mapstore", lambda bus, stop: run(MapstoreSettings(), bus, stop).close(), handles_frames=True,
-                        blas_threads=1)
+    return service_main("mapstore", _body, handles_frames=True, blas_threads=1)
 
 
 if __name__ == "__main__":

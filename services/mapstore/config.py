@@ -11,7 +11,7 @@ from typing import Literal
 
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from ..common.keys import DEFAULT_STREAM
+from ..common.keys import ALL_STREAMS
 
 
 @dataclass(frozen=True)
@@ -144,8 +144,9 @@ class MapstoreSettings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="KMVIPE_MAPSTORE_", env_file=".env", extra="ignore")
 
-    stream: str = DEFAULT_STREAM
-    """Stream name: the ``<s>`` in every key."""
+    stream: str = ALL_STREAMS
+    """The stream served (``kmvipe/<stream>/...``); ``*``: every stream a source announces, each with its own state
+    (services/common/streams.py; replicas split them by ``KMVIPE_SHARD_*``)."""
     db_path: str = "out/map/{stream}.db"
     """SQLite map database; ``{stream}`` is replaced by the stream name."""
     synchronous: Literal["NORMAL", "FULL"] = "FULL"

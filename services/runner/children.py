@@ -112,6 +112,7 @@ def start(name: str, endpoint: str, log_dir: Path, env: dict[str, str]) -> Child
         "KMVIPE_BUS_MODE": "client",
         "KMVIPE_BUS_CONNECT": json.dumps([endpoint]),
         "KMVIPE_BUS_LISTEN": "[]",
+        "KMVIPE_METRICS_PORT": "0",  # a run's services on one host: no metrics server, so their ports never clash
         "PYTHONUNBUFFERED": "1",
         **env,
     }

@@ -250,7 +250,7 @@ def _stream(bus: Bus, cfg: RunSettings, built: list[str], endpoint: str, observe
     for name in [n for n in built if n != "ingest"]:
         if stop.is_set():
             return False
-        started.append(kids.start(name, endpoint, cfg.out / "logs", _service_env(name, cfg)))
+        started.append(kids.start(name, endpoint, cfg.out / "logs", _service_env(name, cfg, built)))
         monitor.watch(name, started[-1].process.pid)
     if not _wait_alive(bus, started, cfg.alive_timeout_s, stop):
         return False
@@ -272,9 +272,11 @@ def _stream(bus: Bus, cfg: RunSettings, built: list[str], endpoint: str, observe
     return True
 
 
-def _service_env(name: str, cfg: RunSettings) -> dict[str, str]:
+def _service_env(name: str, cfg: RunSettings, built: list[str] = ()) -> dict[str, str]:
     prefix = f"KMVIPE_{name.upper()}_"
     env = {prefix + "STREAM": cfg.stream}
+    if name == "features":  # its first credit waits for the downstream stages this run starts, no other
+        env[prefix + "AWAIT_DOWNSTREAM"] = json.dumps([n for n in ("ba", "mapstore") if n in built])
     if name == "mapstore":
         env.update({prefix + "DB_PATH": str(cfg.out / "map.db"), prefix + "EXPORT_DIR": str(cfg.out)})
     if name == "query_api":

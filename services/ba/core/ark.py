@@ -16,6 +16,9 @@ import torch
 from services.ba.core import embedding
 
 
+EDGE_CHUNK = 64  # edges sampled at once
+
+
 class ArkCosine(NamedTuple):
     """Per edge ``e`` and source pixel ``p``."""
 
@@ -36,10 +39,17 @@ def sample(codes: torch.Tensor, ii: torch.Tensor, jj: torch.Tensor, coords: torc
     if coords.shape[1:] != (2, h * w) or ii.shape != jj.shape or coords.shape[0] != ii.shape[0]:
         raise ValueError(f"coords (E, 2, {h * w}) and ii, jj (E,) expected, got {tuple(coords.shape)}, "
                          f"{tuple(ii.shape)}, {tuple(jj.shape)}")
-    values = embedding.bilinear_sample(codes, jj, coords.transpose(1, 2), derivatives=False)
-    res = embedding.embedding_residual(codes.reshape(n, h * w, k)[ii], values)
+    cosine, valid = [], []
+    flat = codes.reshape(n, h * w, k)
+    # a few edges at a time: a sample holds ~10 (E, P, K) temporaries, GBs for an end-of-stream BA's edges at once
+    for start in range(0, len(ii), EDGE_CHUNK):
+        part = slice(start, start + EDGE_CHUNK)
+        values = embedding.bilinear_sample(codes, jj[part], coords[part].transpose(1, 2), derivatives=False)
+        res = embedding.embedding_residual(flat[ii[part]], values)
+        cosine.append(res.cosine.to(coords.dtype))
+        valid.append(res.valid)
     # coords is a fresh tensor of the caller's evaluation, never written in place: kept without a copy
-    return ArkCosine(res.cosine.to(coords.dtype), res.valid, coords)
+    return ArkCosine(torch.cat(cosine), torch.cat(valid), coords)
 
 
 def refresh(cache: ArkCosine | None, codes: torch.Tensor, ii: torch.Tensor, jj: torch.Tensor,
