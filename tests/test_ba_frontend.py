@@ -198,14 +198,23 @@ def test_a_ba_result_whose_keyframe_flies_off_is_refused():
     start = BAState(poses, torch.ones(5, 24, 32, dtype=torch.float64), graph.intrinsics)
     corrected = poses.clone()
     corrected[:, 0, 3] = torch.tensor([0.0, 0.35, 0.7, 2.2, 3.5])
-    assert not graph._jumped(start, BAState(corrected, start.disparity, start.intrinsics))
+    stamps = [0, 1, 2, 3, 4]  # keyframe times (any unit): evenly spaced here
+    assert not graph._jumped(start, BAState(corrected, start.disparity, start.intrinsics), stamps)
     flown = poses.clone()
     flown[4, 0, 3] = 2.0 + 8.0  # the newest keyframe slid along its free direction
-    assert graph._jumped(start, BAState(flown, start.disparity, start.intrinsics)) == 4  # the one to demote
+    assert graph._jumped(start, BAState(flown, start.disparity, start.intrinsics), stamps) == 4  # the one to demote
+    # hand-held yaw: keyframes every 3 frames while the camera turns, 13 apart where the swing turns back; BA
+    # lengthening that long step (motion-only alignment had it short) to the walking speed is no jump
+    walking = torch.eye(4, dtype=torch.float64).repeat(5, 1, 1)
+    walking[:, 0, 3] = torch.tensor([0.0, 0.03, 0.06, 0.09, 0.12])
+    true_steps = walking.clone()
+    true_steps[:, 0, 3] = torch.tensor([0.0, 0.03, 0.06, 0.19, 0.22])
+    assert graph._jumped(BAState(walking, start.disparity, start.intrinsics),
+                         BAState(true_steps, start.disparity, start.intrinsics), [0, 3, 6, 19, 22]) is None
     # under rotation two keyframes can start almost at one place; BA finding their true step is no jump
     turning = poses.clone()
     turning[:, 0, 3] = torch.tensor([0.0, 0.3, 0.301, 0.6, 0.9])
     grown = turning.clone()
     grown[2:, 0, 3] += 0.25
     assert graph._jumped(BAState(turning, start.disparity, start.intrinsics),
-                         BAState(grown, start.disparity, start.intrinsics)) is None
+                         BAState(grown, start.disparity, start.intrinsics), stamps) is None

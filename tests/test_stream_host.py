@@ -90,3 +90,31 @@ def test_a_host_at_its_maximum_refuses_more_streams_until_one_is_released(tcp_en
                     token.undeclare()
                 except Exception:  # noqa: BLE001 (already undeclared above)
                     pass
+
+
+def test_a_kept_finished_stream_stays_until_a_new_one_needs_its_place(tcp_endpoint):
+    """The mapstore keeps a finished camera's map answering queries; only a new stream beyond max_streams takes
+    its place, and then the finished one that was quiet longest goes."""
+    with Bus(BusSettings(mode="peer", listen=[tcp_endpoint]), "source") as source, \
+            Bus(BusSettings(mode="client", connect=[tcp_endpoint]), "mapstore") as bus:
+        workers = Workers()
+        host = StreamHost(bus, workers, idle_s=0.1, max_streams=2, linger_s=None)
+        stop = threading.Event()
+        thread = threading.Thread(target=host.run, args=(stop,), daemon=True)
+        thread.start()
+        tokens = {s: source.announce(s) for s in STREAMS[:2]}
+        try:
+            wait_until(lambda: len(host.served) == 2, 30, "two served")
+            for s in STREAMS[:2]:
+                tokens.pop(s).undeclare()
+            workers.finish[STREAMS[0]].set()
+            stop.wait(1.0)
+            assert set(host.served) == set(STREAMS[:2])  # finished and idle, yet kept
+            tokens[STREAMS[2]] = source.announce(STREAMS[2])
+            wait_until(lambda: STREAMS[2] in host.served, 30, "the new stream served")
+            assert set(host.served) == {STREAMS[1], STREAMS[2]}  # the finished one made room, not the other
+        finally:
+            stop.set()
+            thread.join(timeout=10)
+            for token in tokens.values():
+                token.undeclare()

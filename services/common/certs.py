@@ -20,10 +20,12 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
+from .acl import edge_user
 from .errors import ConfigError
 
 SERVICE_USER = "kmvipe-service"
-"""The credential of features, ba and mapstore (deploy/zenoh/router.json5 gives it the pipeline's topics)."""
+"""The credential of features, ba and mapstore (deploy/zenoh/router.json5 gives it the pipeline's topics and the
+sources' announcements)."""
 GATEWAY_USER = "kmvipe-gateway"
 """The credential of query_api: the only one allowed to query the map."""
 USERS_FILE = "users.txt"
@@ -135,11 +137,6 @@ def write_bus_certs(out: Path, hosts: tuple[str, ...] = DEFAULT_HOSTS, new_ca: b
     write_secret(paths.router_key, key_pem(router_key))
     paths.router_cert.write_bytes(cert_pem(router_cert))
     return paths
-
-
-def edge_user(stream: str) -> str:
-    """The credential of the edge device publishing ``stream``."""
-    return f"edge-{stream}"
 
 
 def write_bus_users(out: Path, streams: tuple[str, ...] = ()) -> dict[str, Path]:

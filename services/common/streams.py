@@ -105,11 +105,12 @@ class StreamHost:
 
     A stream is wanted from its first source token until its sources are gone and the worker is done with it: it
     sent its end of stream and nothing came for ``linger_s`` since, or nothing happened at all for ``idle_s`` (a
-    source that died without one). At most ``max_streams`` at once; a stream beyond that is refused (logged,
+    source that died without one). ``linger_s`` None keeps a finished stream (the mapstore: its map still answers
+    queries) until a new stream needs its place. At most ``max_streams`` at once; a stream beyond that is refused (logged,
     counted in ``refused``) until one is released."""
 
     def __init__(self, bus: Bus, worker: StreamWorker, shard: ShardSettings | None = None, idle_s: float = 60.0,
-                 max_streams: int = 16, linger_s: float = 2.0):
+                 max_streams: int = 16, linger_s: float | None = 2.0):
         self.bus, self.worker, self.idle_s, self.max_streams = bus, worker, idle_s, max_streams
         self.linger_s = linger_s
         self.shard = shard or ShardSettings()
@@ -154,15 +155,30 @@ class StreamHost:
     def _done(self, served: _Served, now: float) -> bool:
         scope = served.scope
         since = now - max(scope.last_activity, served.gone_since)
-        finished = scope.finished_at is not None and scope.finished_at >= scope.last_activity
-        return (finished and since >= self.linger_s) or since >= self.idle_s
+        if self.linger_s is None:
+            return False  # kept until its place is needed (_make_room)
+        return (self._finished(served) and since >= self.linger_s) or since >= self.idle_s
+
+    @staticmethod
+    def _finished(served: _Served) -> bool:
+        scope = served.scope
+        return scope.finished_at is not None and scope.finished_at >= scope.last_activity
+
+    def _make_room(self) -> bool:
+        """Release the finished stream (its sources gone) that was quiet longest, if there is one."""
+        done = [(served.scope.last_activity, stream) for stream, served in self.served.items()
+                if served.gone_since is not None and (self._finished(served) or not served.thread.is_alive())]
+        if not done:
+            return False
+        self._release(min(done)[1])
+        return True
 
     def _start(self, stream: str) -> None:
         if not owns(stream, self.shard.index, self.shard.count):
             return
         if time.monotonic() - self.failed.get(stream, -1e9) < self.failed_backoff_s:
             return  # its worker just raised: not again at once (a traceback every poll helps nobody)
-        if len(self.served) >= self.max_streams:
+        if len(self.served) >= self.max_streams and not self._make_room():
             if stream not in self.refused:
                 log.warning("stream refused: this instance serves its maximum", extra={
                     "stream": stream, "max_streams": self.max_streams})
@@ -203,11 +219,13 @@ class HostSettings(BaseSettings):
 
 
 def serve(stream: str, bus: Bus, stop: threading.Event, run_one: Callable[[str, object, threading.Event], object],
-          host: HostSettings | None = None) -> None:
+          host: HostSettings | None = None, keep_finished: bool = False) -> None:
     """``run_one(stream, bus, stop)`` for one named stream, or, for :data:`keys.ALL_STREAMS`, a :class:`StreamHost`
-    running it for every stream a source announces (each with a :class:`StreamScope` as its bus)."""
+    running it for every stream a source announces (each with a :class:`StreamScope` as its bus). With
+    ``keep_finished`` a finished stream stays served until a new one needs its place."""
     if stream != keys.ALL_STREAMS:
         run_one(stream, bus, stop)
         return
     host = host or HostSettings()
-    StreamHost(bus, run_one, ShardSettings(), host.idle_s, host.max_streams).run(stop)
+    StreamHost(bus, run_one, ShardSettings(), host.idle_s, host.max_streams,
+               linger_s=None if keep_finished else 2.0).run(stop)

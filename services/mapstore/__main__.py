@@ -17,7 +17,8 @@ def _body(bus, stop) -> None:
     cfg = MapstoreSettings()
     serve(cfg.stream, bus, stop,
           lambda stream, stream_bus, stream_stop: run(cfg.model_copy(update={"stream": stream}), stream_bus,
-                                                      stream_stop).close())
+                                                      stream_stop).close(),
+          keep_finished=True)  # a finished camera's map still answers queries, until a new one needs its place
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -202,33 +202,37 @@ class KeyframeGraph:
         except (RuntimeError, IndexError) as exc:  # a degenerate window (singular or non-finite): keep its state
             logger.warning("BA failed; window state kept", extra={"keyframes": len(window), "error": str(exc)})
             return None
-        if not self._plausible(start, result.state, [self.seqs[k] for k in window]):
+        if not self._plausible(start, result.state, [self.seqs[k] for k in window], [self.stamps[k] for k in window]):
             logger.warning("BA result rejected (non-finite or a keyframe step jumped); window state kept",
                            extra={"keyframes": len(window), "focal": float(result.state.intrinsics[0])})
             return None
         self._store(window, result, ii, conf)
         return result
 
-    def _plausible(self, start: BAState, state: BAState, window_seqs: list[int]) -> bool:
+    def _plausible(self, start: BAState, state: BAState, window_seqs: list[int], stamps: list[int]) -> bool:
         finite = all(bool(torch.isfinite(t).all()) for t in (state.poses, state.disparity, state.intrinsics))
         if not finite:
             return False
-        jumped = self._jumped(start, state)
+        jumped = self._jumped(start, state, stamps)
         if jumped is not None:
             self.jumped_seq = window_seqs[jumped]
         return jumped is None
 
-    def _jumped(self, start: BAState, state: BAState) -> int | None:
+    def _jumped(self, start: BAState, state: BAState, stamps: list[int]) -> int | None:
         """A keyframe whose flow constrains nothing (all edges lost) can fly off along the free direction of its
         pose; one such step, kept, would blow up every later constant-velocity prediction. A result is refused
-        when any step between consecutive keyframes grows beyond ``max_step_growth`` times its length at the start
-        (per step: a whole trajectory's steps differ by more than that between turning and driving). Returns the
-        window position of the keyframe that ends the step that grew most, or None."""
+        when the speed over any step between consecutive keyframes (length / time between them) grows beyond
+        ``max_step_growth`` times its speed at the start, or the window's median speed where that is higher
+        (per step: a whole trajectory's speeds differ by more than that between turning and driving). Speeds,
+        not lengths: keyframes come every few frames while the camera turns and every dozen while it only moves
+        (hand-held yaw: the steps at the swing's ends are 4x the others', and their BA results were refused).
+        Returns the window position of the keyframe that ends the step that grew most, or None."""
         if len(start.poses) < 3:
             return None
-        before = (start.poses[1:, :3, 3] - start.poses[:-1, :3, 3]).norm(dim=-1)
-        after = (state.poses[1:, :3, 3] - state.poses[:-1, :3, 3]).norm(dim=-1)
-        floor = float(before.median())  # a step may grow to max_step_growth x the window's median step: under
+        dt = torch.tensor(stamps, dtype=torch.float64, device=start.poses.device).diff().clamp_min(1.0)
+        before = (start.poses[1:, :3, 3] - start.poses[:-1, :3, 3]).norm(dim=-1) / dt
+        after = (state.poses[1:, :3, 3] - state.poses[:-1, :3, 3]).norm(dim=-1) / dt
+        floor = float(before.median())  # a speed may grow to max_step_growth x the window's median: under
         # rotation a step that starts near zero legitimately grows (hand-held yaw: 22 of 27 BA results refused)
         growth = after / (self.max_step_growth * before.clamp_min(floor))
         return int(growth.argmax()) + 1 if bool((growth > 1).any()) else None
