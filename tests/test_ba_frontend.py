@@ -218,3 +218,27 @@ def test_a_ba_result_whose_keyframe_flies_off_is_refused():
     grown[2:, 0, 3] += 0.25
     assert graph._jumped(BAState(turning, start.disparity, start.intrinsics),
                          BAState(grown, start.disparity, start.intrinsics), stamps) is None
+
+
+def _profile_graph(name: str, seqs: list[int]):
+    """A KeyframeGraph holding frames ``seqs`` of a motion profile (256x192) as keyframes, and the world."""
+    import cv2
+    from services.ba.core.params import FlowParams
+    from services.ba.frontend.graph import KeyframeGraph
+    from services.synth.profiles import profile, profile_world
+
+    world = profile_world(profile(name, n=max(seqs) + 1), 256, 192)
+    graph = KeyframeGraph(grid_intrinsics(world.intrinsics), (24, 32), FlowParams(), torch.device("cpu"))
+    for seq in seqs:
+        grey = cv2.cvtColor(world.render(seq).rgb, cv2.COLOR_RGB2GRAY)
+        graph.append(seq, seq, grey, None, None, torch.eye(4, dtype=torch.float64), torch.ones(24, 32, dtype=torch.float64))
+    return graph, world
+
+
+def test_without_parallax_keyframes_keep_their_place_and_take_the_rotation_their_flow_shows():
+    graph, world = _profile_graph("spin", [0, 8, 16, 24])
+    init.start_static(graph)
+    for k, seq in enumerate([0, 8, 16, 24]):
+        truth = torch.from_numpy(np.linalg.inv(world.poses[0]) @ world.poses[seq])
+        assert _rot_deg(graph.poses[k], truth) < 0.3, (seq, _rot_deg(graph.poses[k], truth))
+        assert float(graph.poses[k][:3, 3].norm()) == 0.0

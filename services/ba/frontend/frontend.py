@@ -402,8 +402,8 @@ class Frontend:
         with a still longer baseline (fast motion: the flow between them breaks). Past ``max_keyframes``, the
         oldest keyframe is turned back into a frame, so the next attempt uses a closer pair."""
         g, p = self.graph, self.params.init
-        if len(g) <= p.max_keyframes or init.parallax(g) < p.min_flow:
-            return
+        if len(g) <= p.max_keyframes or not self._has_parallax():
+            return  # no parallax yet: waiting is right, the keyframes stay
         seq = g.seqs[0]
         logger.info("two-view start failed with parallax; oldest keyframe turned into a frame", extra={"seq": seq})
         self.frames.add(FrameRecord(seq, g.stamps[0], g.images[0]))
@@ -414,12 +414,16 @@ class Frontend:
         camera. Waiting for the end of stream would hold every frame (memory) and leave them all without a pose."""
         g = self.graph
         return (g is not None and len(self.frames.frames) > self.params.init.max_pending_frames
-                and (len(g) < 2 or init.parallax(g) < self.params.init.min_flow))
+                and (len(g) < 2 or not self._has_parallax()))
+
+    def _has_parallax(self) -> bool:
+        """The first and newest keyframe have flow enough for a two-view start."""
+        return init.parallax(self.graph) >= self.params.init.min_flow
 
     def _force_initialise(self) -> bool:
         """Start the map with what there is at end of stream; True when there was no parallax at all."""
         g = self.graph
-        if len(g) > 1 and init.parallax(g) < self.params.init.min_flow:
+        if len(g) > 1 and not self._has_parallax():
             init.start_static(g)
             self.initialised = True
             return True

@@ -14,6 +14,7 @@ from services.ba.frontend import motion
 from services.ba.frontend.edges import temporal_pairs
 from services.ba.frontend.graph import KeyframeGraph, working_intrinsics
 from services.ba.frontend.params import InitParams, MotionParams
+from services.ba.frontend.rotation import bearing_rotation
 
 logger = logging.getLogger(__name__)
 
@@ -269,14 +270,22 @@ def parallax(graph: KeyframeGraph) -> float:
 
 
 def start_static(graph: KeyframeGraph) -> None:
-    """The stream ended before the camera moved enough for a two-view start (a fixed camera watching people):
-    every keyframe keeps the first pose and a constant disparity; frames are still aligned to them, so a camera
+    """No parallax for a two-view start (a fixed camera watching people, a camera turning on the spot): every
+    keyframe keeps the first keyframe's position, turned by the rotations that explain the flow between each
+    keyframe and the one before (chained), with a constant disparity; frames are still aligned to them, so a camera
     that did move a little gets that motion, and one that did not stays put."""
     dev, dtype = graph.device, torch.float64
+    graph.poses[0] = torch.eye(4, dtype=dtype, device=dev)
     for k in range(len(graph)):
-        graph.poses[k] = torch.eye(4, dtype=dtype, device=dev)
         graph.disparity[k] = torch.ones(graph.grid_hw, dtype=dtype, device=dev)
-    logger.info("no parallax by end of stream: keyframes keep the first pose", extra={"keyframes": len(graph)})
+        if k:
+            t = graph.targets(k - 1, k)
+            turn = bearing_rotation(t.target.numpy(), t.confidence.numpy(), graph.intrinsics.cpu().numpy(), 1)
+            pose = graph.poses[k - 1].clone()
+            pose[:3, :3] = pose[:3, :3] @ torch.from_numpy(turn.T).to(dev, dtype)  # world_from_k = world_from_k-1 @ k-1_from_k
+            graph.poses[k] = pose
+    logger.info("no parallax: keyframes keep the first position, turned as their flow says",
+                extra={"keyframes": len(graph)})
 
 
 def _mean_grid_flow(targets: np.ndarray) -> float:
