@@ -23,6 +23,7 @@ A version no ``pca`` message brought (missed while down, or lost) is asked of fe
 from __future__ import annotations
 
 import logging
+import secrets
 import threading
 import time
 from collections import Counter
@@ -37,8 +38,10 @@ from services.common.pca_codes import code_map, convert_codes
 from services.common.pca_fetch import BasisFetch
 from services.common.bus import Delivery, Inbox
 from services.common.lifecycle import nice_this_thread
+from services.common.streams import session_of
 from services.common.schema import (Credit, Eos, FrameLite, Graph, Intrinsics, Keyframe, KeyframeCodes, Message,
                                     PcaBasis, Poses)
+from services.ba.checkpoint import Checkpointer
 from services.ba.frontend.frontend import FrameInput, Frontend, KeyframeInput, Update
 from services.ba.frontend.graph import NativeCodes
 from services.ba.settings import BaSettings
@@ -259,8 +262,13 @@ def handle(state: BaState, msg: Message, cfg: BaSettings) -> Outputs:
 
 
 def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None = None) -> BaState:
-    """Serve stream ``cfg.stream`` until ``stop`` is set: tracking on its own thread, mapping on this one."""
+    """Serve stream ``cfg.stream`` until ``stop`` is set: tracking on its own thread, mapping on this one. With
+    ``checkpoint_dir`` set and a session known, the stream's state resumes from its checkpoint when there is one."""
     state = state or build_state(cfg)
+    session = session_of(bus)  # None outside a host (a pinned service): no session, no checkpoint to resume
+    checkpoints = Checkpointer(cfg.checkpoint_dir if session else "", cfg.stream, session, cfg.checkpoint_period_s)
+    resumed_at = _resume(state, checkpoints, cfg)
+    consumer = f"ba-{bus.instance}.{secrets.token_hex(3)}"  # a new name per start: features sees a resumed ba
     topic = lambda name: keys.topic(cfg.stream, name)  # noqa: E731
     mapping = bus.inbox({topic(keys.PCA): [PcaBasis], topic(keys.CODES): [KeyframeCodes], topic(keys.EOS): [Eos]},
                         maxsize=cfg.inbox_size, droppable=(FrameLite,))
@@ -276,6 +284,8 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
     tracking = TrackingLoop(cfg.tracker(), bus, track_box, cfg.stream,
                             state.anchors, cfg.tracking_nice)
     tracking.start()
+    if (ref := state.frontend.reference()) is not None:  # resumed: tracking starts from mapping's newest keyframe
+        tracking.set_reference(ref)
     bus.ready()
     nice_this_thread(cfg.mapping_nice)
     log.info("ba ready", extra={"stream": cfg.stream, "device": str(state.frontend.device)})
@@ -284,13 +294,16 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
     try:
         while not stop.is_set():
             if time.monotonic() >= next_progress:
-                bus.publish(topic(keys.PROGRESS), Credit(cfg.stream, state.last_seq, time.time_ns(),
-                                                         consumer=f"ba-{bus.instance}"))
+                bus.publish(topic(keys.PROGRESS), Credit(cfg.stream, state.last_seq, time.time_ns(), consumer=consumer,
+                                                         checkpoints=checkpoints.enabled,
+                                                         durable=checkpoints.durable))
                 next_progress = time.monotonic() + PROGRESS_PERIOD_S
             delivery = mapping.get(POLL_S)
             msg = delivery.msg if delivery is not None else None
             if isinstance(msg, Eos) and msg.stage == "features":
                 eos, msg = (msg, time.monotonic() + cfg.eos_wait_s), None
+            if isinstance(msg, (Keyframe, FrameLite)) and msg.seq <= resumed_at:
+                msg = None  # the checkpoint has it already (in flight when ba was killed)
             if msg is not None:
                 state.keyframe_backlog = mapping.count(Keyframe)
                 began = time.monotonic()
@@ -303,6 +316,8 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
                     ref = state.frontend.reference()
                     if ref is not None:
                         tracking.set_reference(ref)
+                    if checkpoints.due():
+                        checkpoints.save(state)
                 if isinstance(msg, Keyframe) and msg.codes is not None and msg.pca_version not in state.bases:
                     state.pca_fetch.want(msg.pca_version)
             state.pca_fetch.run_due(bus, cfg.stream, state.bases, lambda basis: handle(state, basis, cfg))
@@ -312,9 +327,24 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
                     bus.publish(key, out)
                 tracking.reset()
                 eos = None
+                if checkpoints.enabled:
+                    log.info("checkpoints", extra={"stream": cfg.stream, "written": checkpoints.written,
+                                                   "seconds": round(checkpoints.seconds, 2)})
+                checkpoints.remove()  # the session's stream is done: nothing to resume
     finally:
         tracking.stop()
     return state
+
+
+def _resume(state: BaState, checkpoints: Checkpointer, cfg: BaSettings) -> int:
+    """Put the stream's checkpoint, if there is one, into ``state``; the seq it holds (-1: none)."""
+    ckpt = checkpoints.load(state.frontend.device)
+    if ckpt is None:
+        return -1
+    for name, value in ckpt.fields.items():
+        setattr(state, name, value)
+    log.info("resumed from checkpoint", extra={"stream": cfg.stream, "seq": ckpt.seq, "keyframes": state.keyframes})
+    return ckpt.seq
 
 
 def _stream_complete(state: BaState, eos: Eos, queued: int) -> bool:

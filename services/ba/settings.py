@@ -94,6 +94,11 @@ class BaSettings(BASettings):
     """How long features' end of stream waits for keyframes it announced that have not arrived."""
     inbox_size: int = 4096
     """Messages buffered between the bus and the service loop."""
+    checkpoint_dir: str = ""
+    """Where each stream's mapping state is checkpointed (one file per stream and session), so a ba killed
+    mid-stream resumes in the same world frame; "" (``kmvipe run``): none. Compose and Kubernetes set a volume."""
+    checkpoint_period_s: float = 2.0
+    """At most one checkpoint per this many seconds (each is written after a keyframe's BA)."""
 
     def tracker(self) -> "Tracker":
         """The frame-rate tracker with these settings."""

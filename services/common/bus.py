@@ -287,10 +287,11 @@ class Bus:
                 handle.undeclare()
 
     # --- sources -------------------------------------------------------------------------------------
-    def announce(self, stream: str):
-        """Declare that this instance streams ``stream`` (services serving every stream start on it); returns the
-        token, which the caller undeclares when the stream ends."""
-        return self.session.liveliness().declare_token(keys.source(stream, self.instance))
+    def announce(self, stream: str, session: str | None = None):
+        """Declare that this instance streams ``stream`` in ``session`` (default: the instance id), so services
+        serving every stream start a worker for it; returns the token, which the caller undeclares when the
+        stream ends."""
+        return self.session.liveliness().declare_token(keys.source(stream, session or self.instance))
 
     def watch_sources(self, on_change: Callable[[str, str, bool], None]) -> None:
         """``on_change(stream, source key, present)`` for every source token there is and every one that appears

@@ -2,11 +2,13 @@
 
 Layout: ``kmvipe/<stream>/<topic>``; liveliness tokens under ``kmvipe/@alive/<service>/<instance>``
 (``@alive`` is a verbatim chunk, so stream wildcards like ``kmvipe/*/frame`` never match it), and a source's token
-``kmvipe/<stream>/@source/<instance>`` while it streams: services that serve every stream start on it.
+``kmvipe/<stream>/@source/<session>`` while it streams: services that serve every stream start on it.
 """
 from __future__ import annotations
 
 import re
+import secrets
+import time
 
 from .errors import ConfigError
 
@@ -100,7 +102,18 @@ def source(stream: str = "*", instance: str = "*") -> str:
 
 def parse_source(key: str) -> str:
     """The stream of a :func:`source` token key."""
+    return parse_source_session(key)[0]
+
+
+def parse_source_session(key: str) -> tuple[str, str]:
+    """The stream and the session of a :func:`source` token key (a source announces its session as its instance)."""
     parts = str(key).split("/")
     if len(parts) != 4 or parts[0] != ROOT or parts[2] != SOURCE:
         raise ValueError(f"not a source token key: {key!r}")
-    return check_name(parts[1])
+    return check_name(parts[1]), check_name(parts[3], "session")
+
+
+def new_session() -> str:
+    """A session id for a source starting a stream: its UTC start time, readable and in order, and 4 random hex
+    digits so two sources started in the same second differ (``20261125T121530-3fa2``)."""
+    return time.strftime("%Y%m%dT%H%M%S", time.gmtime()) + "-" + secrets.token_hex(2)

@@ -3,12 +3,15 @@
 A message is a frozen dataclass; on the wire it is a msgpack map ``{"kind", "v", <fields>}`` (see
 :mod:`services.common.codec`). :func:`decode` checks kind, version, field types, array dtypes and shapes, and
 raises :class:`DecodeError` with a message that names the field — services count and drop such payloads.
-Every message carries ``stream``, ``seq`` and ``t_ns`` so one frame can be followed through the logs.
+Every message carries ``stream``, ``seq`` and ``t_ns`` so one frame can be followed through the logs, and the
+``session`` of the stream it belongs to: a source that starts (or restarts) on a stream opens a new session, and
+no stage mixes two sessions' messages into one state (:mod:`services.common.streams`).
 Conventions (poses ``world_from_cam``, RGB, the 1/8 grid) are in docs/CONVENTIONS.md.
 """
 from __future__ import annotations
 
 import dataclasses
+import re
 import types
 import typing
 from dataclasses import dataclass, field
@@ -21,6 +24,7 @@ from .errors import DecodeError
 
 SCHEMA_VERSION = 1
 MAX_DIM = 1 << 16  # no image side or list length on the wire is larger
+_SESSION = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")  # a name, as keys.check_name: it is a key segment too
 
 
 def arr(dtypes: str, shape: tuple) -> dict:
@@ -37,6 +41,7 @@ class Message:
     stream: str
     seq: int
     t_ns: int
+    session: str = field(default="", kw_only=True)  # "" : sent outside any session (tests, tools)
 
     def check(self) -> None:
         """Cross-field rules beyond types and shapes; raise DecodeError."""
@@ -72,10 +77,14 @@ class Credit(Message):
     """features → ingest (on ``credit``): ``seq`` is the highest frame seq ``consumer`` can take now.
 
     ba and mapstore → features (on ``progress``): ``seq`` is the highest frame seq ``consumer`` has handled (ba:
-    any frame; mapstore: keyframes), so features holds ingest back while the stages behind it are behind."""
+    any frame; mapstore: keyframes), so features holds ingest back while the stages behind it are behind. A ba
+    that checkpoints (``checkpoints``) also says up to which seq its last checkpoint holds (``durable``): features
+    keeps what it sent after that, and sends it again to a ba instance that resumed from the checkpoint."""
 
     KIND: ClassVar[str] = "credit"
     consumer: str = ""
+    checkpoints: bool = False
+    durable: int = -1
 
 
 @dataclass(frozen=True)
@@ -309,6 +318,8 @@ def from_dict(cls: type[Message], body: dict) -> Message:
                 raise DecodeError(f"{cls.KIND}: missing field '{f.name}'")
             continue
         values[f.name] = _check_field(cls.KIND, f, hints[f.name], body[f.name], dims)
+    if values.get("session") and not _SESSION.match(values["session"]):
+        raise DecodeError(f"{cls.KIND}: field 'session' must be 1-64 of A-Z a-z 0-9 _ -, got {values['session']!r}")
     msg = cls(**values)
     msg.check()
     return msg

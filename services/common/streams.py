@@ -7,9 +7,17 @@ service's ordinary single-stream ``run(cfg, bus, stop)`` given a :class:`StreamS
 scope declares the worker's subscriptions and queryables on the shared session and undeclares them when the worker
 ends, and stamps its activity. Which streams this instance serves is decided by :mod:`services.common.sharding`
 (replica ``i`` of ``N`` serves the streams whose rendezvous hash picks it).
+
+Sessions: a source announces its stream with its session as the token's last segment
+(``kmvipe/<stream>/@source/<session>``) and stamps every message with it. A worker serves one session of its
+stream: its scope drops (and counts) messages of any other session and stamps what the worker publishes with its
+own. When a new session appears on a stream (a publisher restarted), the host ends the old session's worker and
+starts a fresh one, so a new session never lands in an earlier session's state or world frame. A worker run
+outside a host (a service pinned to one stream) takes the session of the first message that has one.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -32,8 +40,9 @@ StreamWorker = Callable[[str, "StreamScope", threading.Event], object]
 class StreamScope:
     """What one stream's worker sees of the bus: the same calls as :class:`Bus`, its declarations its own."""
 
-    def __init__(self, bus: Bus, stream: str):
+    def __init__(self, bus: Bus, stream: str, session: str | None = None):
         self.bus, self.stream = bus, stream
+        self.session = session  # None: taken from the first message that has one
         self._handles: list = []
         self.last_activity = time.monotonic()  # a message in, or one out that is not a heartbeat
         self.finished_at: float | None = None  # when the worker last sent its end of stream
@@ -52,6 +61,14 @@ class StreamScope:
 
     def _touch(self, on_message: Callable[[Delivery], None]) -> Callable[[Delivery], None]:
         def wrapped(delivery: Delivery) -> None:
+            session = delivery.msg.session
+            if session:
+                if self.session is None:
+                    self.session = session
+                elif session != self.session:  # a late message of an ended session, or a stray one
+                    self.bus.stats.record(delivery.key, "session",
+                                          f"message of session {session} while serving session {self.session}")
+                    return
             self.last_activity = time.monotonic()
             on_message(delivery)
         return wrapped
@@ -74,6 +91,8 @@ class StreamScope:
         return handle
 
     def publish(self, key: str, msg: Message, *, drop_if_congested: bool = False) -> None:
+        if self.session and msg.session != self.session:
+            msg = dataclasses.replace(msg, session=self.session)
         if isinstance(msg, Eos):
             self.finished_at = time.monotonic()
         elif not isinstance(msg, Credit):  # credit and progress are heartbeats, not work
@@ -120,11 +139,14 @@ class StreamHost:
         self.failed_backoff_s = 10.0
         self._lock = threading.Lock()
         self._wanted: dict[str, set[str]] = {}  # stream -> source keys present (fed by the Zenoh thread)
+        self._newest: dict[str, str] = {}  # stream -> the session of the source token that appeared last
 
     def on_source(self, stream: str, key: str, present: bool) -> None:
         with self._lock:
             sources = self._wanted.setdefault(stream, set())
             (sources.add if present else sources.discard)(key)
+            if present:
+                self._newest[stream] = keys.parse_source_session(key)[1]
 
     def run(self, stop: threading.Event, poll_s: float = 0.1) -> None:
         """Serve until ``stop``; then stop every worker."""
@@ -142,10 +164,18 @@ class StreamHost:
         now = time.monotonic()
         with self._lock:
             wanted = {s: set(keys_) for s, keys_ in self._wanted.items()}
+            newest = dict(self._newest)
         for stream, sources in wanted.items():
             served = self.served.get(stream)
+            session = newest.get(stream)
+            if served is not None and sources and session and served.scope.session not in (None, session) \
+                    and keys.source(stream, session) in sources:
+                log.info("new session: the previous one ends", extra={
+                    "stream": stream, "session": session, "previous_session": served.scope.session})
+                self._release(stream)
+                served = None
             if served is None and sources:
-                self._start(stream)
+                self._start(stream, session)
             elif served is not None:
                 served.gone_since = None if sources else (served.gone_since or now)
         for stream, served in list(self.served.items()):
@@ -173,7 +203,7 @@ class StreamHost:
         self._release(min(done)[1])
         return True
 
-    def _start(self, stream: str) -> None:
+    def _start(self, stream: str, session: str | None = None) -> None:
         if not owns(stream, self.shard.index, self.shard.count):
             return
         if time.monotonic() - self.failed.get(stream, -1e9) < self.failed_backoff_s:
@@ -185,11 +215,11 @@ class StreamHost:
                 self.refused.add(stream)
             return
         self.refused.discard(stream)
-        scope, stop = StreamScope(self.bus, stream), threading.Event()
+        scope, stop = StreamScope(self.bus, stream, session), threading.Event()
         thread = threading.Thread(target=self._serve, args=(stream, scope, stop), name=f"stream-{stream}",
                                   daemon=True)
         self.served[stream] = _Served(scope, stop, thread)
-        log.info("serving stream", extra={"stream": stream, "streams": len(self.served)})
+        log.info("serving stream", extra={"stream": stream, "session": session, "streams": len(self.served)})
         thread.start()
 
     def _serve(self, stream: str, scope: StreamScope, stop: threading.Event) -> None:
@@ -205,6 +235,11 @@ class StreamHost:
         served.thread.join(timeout=30)
         served.scope.close()
         log.info("stream released", extra={"stream": stream, "streams": len(self.served)})
+
+
+def session_of(bus) -> str | None:
+    """The session a worker's bus serves (None: not known yet, or a plain :class:`Bus` outside any scope)."""
+    return bus.session if isinstance(bus, StreamScope) else None
 
 
 class HostSettings(BaseSettings):
@@ -224,7 +259,11 @@ def serve(stream: str, bus: Bus, stop: threading.Event, run_one: Callable[[str, 
     running it for every stream a source announces (each with a :class:`StreamScope` as its bus). With
     ``keep_finished`` a finished stream stays served until a new one needs its place."""
     if stream != keys.ALL_STREAMS:
-        run_one(stream, bus, stop)
+        scope = StreamScope(bus, stream)
+        try:
+            run_one(stream, scope, stop)
+        finally:
+            scope.close()
         return
     host = host or HostSettings()
     StreamHost(bus, run_one, ShardSettings(), host.idle_s, host.max_streams,

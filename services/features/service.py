@@ -28,6 +28,7 @@ from ..common.device import resolve_device
 from ..common.models.loaders import load_backbone, load_depth_model
 from ..common.models.store import ModelStore
 from ..common.schema import Credit, Eos, Frame, FrameLite, Intrinsics, Keyframe, KeyframeCodes, Message, PcaBasis
+from .replay import ReplayBuffer
 from .config import FeaturesSettings
 from .core.geometry import Intrinsics as K4
 from .core.pca import PcaBasis as CoreBasis
@@ -69,6 +70,7 @@ class FeaturesState:
     downstream: dict[str, tuple[int, float]] = field(default_factory=dict)
     sent: deque = field(default_factory=deque)
     inbox: Inbox | None = None  # the service loop's, whose real-time drops count for this stream
+    replay: ReplayBuffer = field(default_factory=ReplayBuffer)  # sent to ba since its last checkpoint
     started: float = field(default_factory=time.monotonic)  # when this stream's state was made
 
 
@@ -246,7 +248,9 @@ def credit_limit(state: FeaturesState, cfg: FeaturesSettings, now: float) -> int
 
 
 def on_progress(state: FeaturesState, msg: Credit) -> None:
-    """A downstream stage's progress report (Zenoh thread: one dict assignment)."""
+    """A downstream stage's progress report (Zenoh thread: dict assignments)."""
+    for gone in state.replay.on_progress(msg):  # a ba that resumed from its checkpoint replaces the killed one
+        state.downstream.pop(gone, None)
     state.downstream[msg.consumer] = (msg.seq, time.monotonic())
 
 
@@ -291,8 +295,11 @@ def run(cfg: FeaturesSettings, bus: Bus, stop: threading.Event, state: FeaturesS
                 except (ValueError, RuntimeError):  # one bad frame must not end the stream
                     log.exception("message failed", extra={"stream": cfg.stream, "seq": delivery.msg.seq})
                 next_credit = 0.0  # grant the next frame at once
+            for key, out in state.replay.due():  # kept already: published again, not recorded again
+                bus.publish(key, out)
             for key, out in outputs:
                 bus.publish(key, out)
+                state.replay.record(key, out)
     finally:
         state.semantics.stop()
     return state

@@ -20,7 +20,7 @@ log = logging.getLogger(__name__)
 CREDIT_POLL_S = 0.05
 
 
-def frame_message(cfg: IngestSettings, seq: int, item: SourceFrame) -> Frame:
+def frame_message(cfg: IngestSettings, seq: int, item: SourceFrame, session: str = "") -> Frame:
     """The wire message of one source frame (JPEG or raw RGB)."""
     h, w = item.rgb.shape[:2]
     intrinsics = np.asarray(cfg.intrinsics, np.float64) if cfg.intrinsics else None
@@ -31,14 +31,17 @@ def frame_message(cfg: IngestSettings, seq: int, item: SourceFrame) -> Frame:
         if not ok:
             raise ValueError("JPEG encoding failed")
         return Frame(cfg.stream, seq, item.t_ns, w, h, jpeg=buf.tobytes(), intrinsics=intrinsics, depth=depth,
-                     realtime=realtime)
-    return Frame(cfg.stream, seq, item.t_ns, w, h, image=item.rgb, intrinsics=intrinsics, depth=depth, realtime=realtime)
+                     realtime=realtime, session=session)
+    return Frame(cfg.stream, seq, item.t_ns, w, h, image=item.rgb, intrinsics=intrinsics, depth=depth, realtime=realtime,
+                 session=session)
 
 
 class CreditGate:
-    """Thread-safe credit state fed by the ``credit`` subscription (Zenoh thread), read by the send loop."""
+    """Thread-safe credit state fed by the ``credit`` subscription (Zenoh thread), read by the send loop. Credit
+    stamped with another session (a consumer still serving this stream's previous source) is not ours."""
 
-    def __init__(self, ttl_s: float):
+    def __init__(self, ttl_s: float, session: str = ""):
+        self.session = session
         self._ledger = CreditLedger(ttl_s)
         self._cond = threading.Condition()
         self.ever_granted = False
@@ -46,6 +49,8 @@ class CreditGate:
     def on_credit(self, delivery: Delivery) -> None:
         msg = delivery.msg
         assert isinstance(msg, Credit)
+        if msg.session and self.session and msg.session != self.session:
+            return
         with self._cond:
             self._ledger.grant(msg.consumer or "anonymous", msg.seq, time.monotonic())
             self.ever_granted = True
@@ -64,10 +69,11 @@ def run(cfg: IngestSettings, bus: Bus, stop: threading.Event, source: Source | N
     """Stream ``cfg.source`` (or ``source``) onto the bus until it ends or ``stop`` is set."""
     source = source or open_source(cfg.source, fps=cfg.fps, use_depth=cfg.use_depth,
                                    depth_scale=cfg.depth_scale)
-    gate = CreditGate(cfg.credit_ttl_s)
+    session = keys.new_session()  # a restarted source is a new session: never fused into the last one's world
+    gate = CreditGate(cfg.credit_ttl_s, session)
     bus.subscribe(keys.topic(cfg.stream, keys.CREDIT), gate.on_credit, expect=[Credit])
     bus.ready()
-    token = bus.announce(cfg.stream)  # services that serve every stream start this one's workers on it
+    token = bus.announce(cfg.stream, session)  # services that serve every stream start this session's workers on it
     try:
         return _stream(cfg, bus, stop, source, gate)
     finally:
@@ -83,7 +89,8 @@ def _stream(cfg: IngestSettings, bus: Bus, stop: threading.Event, source: Source
     lossless = cfg.pacing == "lossless"
     pace_fps = cfg.fps or source.fps
     started = time.monotonic()
-    log.info("streaming", extra={"stream": cfg.stream, "source": source.name, "pacing": cfg.pacing})
+    log.info("streaming", extra={"stream": cfg.stream, "session": gate.session, "source": source.name,
+                                 "pacing": cfg.pacing})
 
     for position, item in enumerate(source.frames()):
         if stop.is_set():
@@ -109,7 +116,7 @@ def _stream(cfg: IngestSettings, bus: Bus, stop: threading.Event, source: Source
             counters.dropped += 1
             continue
         try:
-            bus.publish(frame_key, frame_message(cfg, seq, item), drop_if_congested=not lossless)
+            bus.publish(frame_key, frame_message(cfg, seq, item, gate.session), drop_if_congested=not lossless)
         except ValueError as exc:
             counters.corrupt += 1
             log.warning("could not encode frame", extra={"stream": cfg.stream, "seq": seq, "error": str(exc)})
@@ -118,8 +125,8 @@ def _stream(cfg: IngestSettings, bus: Bus, stop: threading.Event, source: Source
         if cfg.max_frames and counters.sent >= cfg.max_frames:
             break
 
-    bus.publish(keys.topic(cfg.stream, keys.EOS), Eos(cfg.stream, seq, time.time_ns(), stage="ingest", count=counters.sent, reason=reason,
-                                                         dropped=counters.dropped))
+    bus.publish(keys.topic(cfg.stream, keys.EOS), Eos(cfg.stream, seq, time.time_ns(), stage="ingest", count=counters.sent,
+                                                      reason=reason, dropped=counters.dropped, session=gate.session))
     log.info("end of stream", extra={"stream": cfg.stream, "reason": reason, **counters.__dict__})
     return counters
 

@@ -91,7 +91,7 @@ def stats(state: MapState, stream: str) -> MapStats:
     return MapStats(stream, state.map.revision, time.time_ns(), keyframes=state.keyframe_count(),
                     points=int(len(fused.keys)), voxels=int(len(fused.keys)), backbone=_basis_space(state),
                     pca_version=max(state.bases) if state.bases else -1, metric=bool(state.metric),
-                    keyframes_without_codes=state.without_codes_count())
+                    keyframes_without_codes=state.without_codes_count(), session=state.session)
 
 
 def answer(state: MapState, stream: str, key: str, params: dict, payload: bytes | None) -> bytes:

@@ -27,6 +27,7 @@ from services.common import keys
 from services.common.bus import Bus
 from services.common.errors import DecodeError, ServiceTimeout
 from services.common.pca_fetch import BasisFetch
+from services.common.streams import session_of
 from services.common.schema import (Credit, Eos, Graph, Keyframe, KeyframeCodes, Message, PcaBasis as PcaMessage,
                                     decode)
 from services.mapstore import queries
@@ -195,7 +196,7 @@ def _wanted_version(state: MapState, msg: Message) -> int | None:
 def run(cfg: MapstoreSettings, bus: Bus, stop: threading.Event, state: MapState | None = None,
         fetch: BasisFetch | None = None) -> MapState:
     """Serve the map of `cfg.stream` until `stop` is set. ``fetch``: the missing-basis requests (counts)."""
-    state, fetch = state or MapState(cfg), fetch or BasisFetch()
+    state, fetch = state or MapState(cfg, session_of(bus)), fetch or BasisFetch()
     topic = lambda name: keys.topic(cfg.stream, name)  # noqa: E731
     inbox = bus.inbox({topic(keys.KEYFRAME): [Keyframe], topic(keys.CODES): [KeyframeCodes],
                        topic(keys.PCA): [PcaMessage], topic(keys.GRAPH): [Graph], topic(keys.EOS): [Eos]},
@@ -208,12 +209,17 @@ def run(cfg: MapstoreSettings, bus: Bus, stop: threading.Event, state: MapState 
         fetch.want(version)
     log.info("mapstore serving", extra={"stream": cfg.stream})
     last_report = 0.0
+    carried = None  # a message of another session that ended a batch: the first of the next one
     while not stop.is_set():
-        delivery = inbox.get(min(POLL_S, PROGRESS_S))
+        delivery, carried = carried or inbox.get(min(POLL_S, PROGRESS_S)), None
         if delivery is not None:
+            state = state.for_session(delivery.msg.session)  # the queryable's closure follows the rebinding
             with state.batch():
                 for n in range(cfg.refresh_batch):
                     if n and (delivery := inbox.get(0)) is None:
+                        break
+                    if delivery.msg.session not in ("", state.session):
+                        carried = delivery
                         break
                     for key, out in handle(state, delivery.msg, cfg):
                         bus.publish(key, out)

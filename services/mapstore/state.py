@@ -45,6 +45,7 @@ from services.mapstore.core.geometry import sample_cell_colours
 from services.mapstore.core.keyframe import KeyframeContent, KeyframeDepth
 from services.mapstore.core.map import KeyframeMap, code_maps_to_latest
 from services.mapstore.core.scoring import PcaBasis, ScoringIndex
+from services.mapstore.sessions import archive_other_session
 from services.mapstore.store import MapStore
 
 log = logging.getLogger(__name__)
@@ -54,11 +55,19 @@ RESTART_PAGE = 64  # keyframes read from the store at a time when a restart stre
 class MapState:
     """Store + map + the scoring index of the latest map revision. Methods are thread-safe."""
 
-    def __init__(self, cfg: MapstoreSettings) -> None:
+    def __init__(self, cfg: MapstoreSettings, session: str | None = None) -> None:
+        """``session``: the stream's session this map is of (a map of another session at the path is moved
+        aside first); None: not known yet (:meth:`adopt_session`)."""
         self.cfg = cfg
         self.lock = threading.RLock()
-        self.store = MapStore(Path(cfg.db_path.format(stream=cfg.stream)), synchronous=cfg.synchronous)
+        path = Path(cfg.db_path.format(stream=cfg.stream))
+        if session:
+            archive_other_session(path, session)
+        self.store = MapStore(path, synchronous=cfg.synchronous)
         stored = self.store.load_static()
+        self.session = session or stored.meta.get("session", "")
+        if session and stored.meta.get("session") != session:
+            self.store.set_meta({"session": session})
         voxel = float(stored.meta["voxel_size"]) if "voxel_size" in stored.meta else None
         self.map = KeyframeMap(cfg.map_params(), voxel_size=voxel, versioned=True)
         self.bases: dict[int, PcaBasis] = stored.bases
@@ -116,6 +125,19 @@ class MapState:
 
     def close(self) -> None:
         self.store.close()
+
+    def for_session(self, session: str) -> "MapState":
+        """The state for a message of ``session`` (a mapstore pinned to one stream learns it from its messages):
+        this one, naming its session if it had none and is empty; else a fresh map, the other session's moved
+        aside (a ``kmvipe run`` into an existing output folder starts a new map instead of extending the old one)."""
+        if not session or session == self.session:
+            return self
+        if not self.session and self.keyframe_count() == 0:
+            self.session = session
+            self.store.set_meta({"session": session})
+            return self
+        self.close()
+        return MapState(self.cfg, session)
 
     # ----- writes ---------------------------------------------------------------------------------
     def add_keyframe(self, kf_id: int, t_ns: int, image: np.ndarray, codes: np.ndarray | None,

@@ -49,7 +49,8 @@ class Gateway:
         self.text = text or TextPath(cfg)
         self._backbone = backbone
         self._backbone_lock = threading.Lock()
-        self._poses: dict[str, PoseBook] = {}
+        self._poses: dict[str, PoseBook] = {}  # the current session's trajectory of each stream
+        self._pose_sessions: dict[str, str] = {}
         self._poses_lock = threading.Lock()
         self._spaces: dict[str, tuple[float, str]] = {}  # stream → (monotonic time, backbone space)
         self._spaces_lock = threading.Lock()
@@ -60,6 +61,12 @@ class Gateway:
         msg = delivery.msg
         assert isinstance(msg, Poses)
         with self._poses_lock:
+            current = self._pose_sessions.get(msg.stream, "")
+            if msg.session and msg.session != current:
+                if msg.session < current:  # a late pose of an earlier session (ids sort by start time)
+                    return
+                self._poses.pop(msg.stream, None)  # a new session: its own world frame, its own trajectory
+                self._pose_sessions[msg.stream] = msg.session
             book = self._poses.setdefault(msg.stream, PoseBook(self.cfg.trajectory_capacity))
             book.update(msg.frame_seqs, msg.stamps_ns, msg.poses, msg.final)
 
@@ -137,11 +144,15 @@ class Gateway:
         out: dict[str, dict] = {}
         for name, st in self.maps.all_stats(self.cfg.alive_timeout_s).items():
             out[name] = {"map": {"keyframes": st.keyframes, "points": st.points, "voxels": st.voxels,
-                                 "backbone": st.backbone, "pca_version": st.pca_version, "metric": st.metric}}
+                                 "backbone": st.backbone, "pca_version": st.pca_version, "metric": st.metric,
+                                 "session": st.session}}
         for name, n in self.pose_streams().items():
             out.setdefault(name, {"map": None})["poses"] = n
-        for entry in out.values():
+        with self._poses_lock:
+            sessions = dict(self._pose_sessions)
+        for name, entry in out.items():
             entry.setdefault("poses", 0)
+            entry["session"] = sessions.get(name) or (entry["map"] or {}).get("session", "")
         return out
 
     def health(self) -> dict[str, list[str]]:

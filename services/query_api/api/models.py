@@ -133,12 +133,14 @@ class MapInfo(BaseModel):
     backbone: str
     pca_version: int
     metric: bool
+    session: str = ""  # the session this map is of
 
 
 class StreamInfo(BaseModel):
     name: str
     map: Optional[MapInfo]
     poses: int
+    session: str = ""  # the stream's current session (a restarted publisher opens a new one): poses and map are its
 
 
 class StreamsResponse(BaseModel):

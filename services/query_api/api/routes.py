@@ -192,7 +192,8 @@ async def map_points(request: Request, stream: str = STREAM,
 @router.get("/streams", response_model=m.StreamsResponse, summary="Known streams")
 async def streams(request: Request) -> m.StreamsResponse:
     found = await run_in_threadpool(_gateway(request).streams)
-    return m.StreamsResponse(streams=[m.StreamInfo(name=k, map=v["map"], poses=v["poses"]) for k, v in sorted(found.items())])
+    return m.StreamsResponse(streams=[m.StreamInfo(name=k, map=v["map"], poses=v["poses"], session=v.get("session", ""))
+                                      for k, v in sorted(found.items())])
 
 
 @public.get("/health", response_model=m.HealthResponse, summary="Liveliness of every service (no API key needed)")

@@ -1,0 +1,89 @@
+"""What features sent to ba since ba's last checkpoint, sent again when a ba instance resumes from it.
+
+ba checkpoints its mapping state now and then (services/ba/checkpoint.py) and says in its progress reports up to
+which frame seq the newest checkpoint holds (``durable``). A ba killed and restarted resumes from that checkpoint
+under a new consumer name and reports the checkpoint's seq; everything features sent after it — keyframes, frame
+messages, codes, its end of stream — would be lost, since Zenoh delivers to whoever subscribed at the time. So
+features keeps those messages (bounded: ``max_messages``; beyond it the oldest are given up and counted) and, when
+a ba consumer it has not heard from before reports after another one did, publishes them again in their original
+order. Nothing is kept while no ba checkpoints. Codes are kept apart from frames: a keyframe's codes come after
+it, possibly after the checkpoint that holds the keyframe, so the newest ``max_codes`` codes are always resent
+(ba takes a repeated one as the same codes again)."""
+from __future__ import annotations
+
+import logging
+import threading
+from collections import deque
+
+from ..common import keys
+from ..common.schema import Credit, Eos, FrameLite, Keyframe, KeyframeCodes, Message
+
+log = logging.getLogger(__name__)
+
+
+class ReplayBuffer:
+    def __init__(self, max_messages: int = 512, max_codes: int = 64):
+        self.max_messages = max_messages
+        self._frames: deque[tuple[str, Message]] = deque()  # keyframes, frame messages, the EOS: in send order
+        self._codes: deque[tuple[str, Message]] = deque(maxlen=max_codes)
+        self._lock = threading.Lock()
+        self._ba: set[str] = set()  # ba consumers heard from
+        self._resume_after: int | None = None  # a new ba instance resumed after this seq: replay on the loop
+        self.active = False  # some ba checkpoints
+        self.durable = -1
+        self.given_up = 0  # messages dropped from a full buffer (a ba restarting later misses them)
+        self.replayed = 0
+
+    def on_progress(self, msg: Credit) -> list[str]:
+        """A downstream progress report (Zenoh thread). Returns the ba consumers it replaces (gone: a new one
+        resumed), for the caller to forget."""
+        if not msg.consumer.startswith("ba-") or not msg.checkpoints:
+            return []
+        with self._lock:
+            self.active = True
+            replaced: list[str] = []
+            if msg.consumer not in self._ba:
+                if self._ba:  # another ba instance came before: this one resumed from a checkpoint
+                    self._resume_after = msg.seq
+                    replaced = sorted(self._ba)
+                    self._ba.clear()
+                self._ba.add(msg.consumer)
+            self.durable = max(self.durable, msg.durable) if not replaced else msg.durable
+            return replaced
+
+    def record(self, key: str, msg: Message) -> None:
+        """A message features published (loop thread)."""
+        if not self.active:
+            return
+        with self._lock:
+            if isinstance(msg, KeyframeCodes):
+                self._codes.append((key, msg))
+                return
+            if not isinstance(msg, (Keyframe, FrameLite)) and not (isinstance(msg, Eos) and key.endswith(keys.EOS)):
+                return
+            self._frames.append((key, msg))
+            while self._frames and (self._frames[0][1].seq <= self.durable and
+                                    not isinstance(self._frames[0][1], Eos)):
+                self._frames.popleft()
+            while len(self._frames) > self.max_messages:
+                self._frames.popleft()
+                self.given_up += 1
+
+    def due(self) -> list[tuple[str, Message]]:
+        """The messages to publish again now (loop thread): after a ba resumed, what it has not got."""
+        with self._lock:
+            after, self._resume_after = self._resume_after, None
+            if after is None:
+                return []
+            frames = [(k, m) for k, m in self._frames if m.seq > after or isinstance(m, Eos)]
+            out = frames + list(self._codes)
+        self.replayed += len(out)
+        log.info("ba resumed from its checkpoint: sending again what came after it", extra={
+            "after_seq": after, "messages": len(out), "given_up": self.given_up})
+        return out
+
+    def clear(self) -> None:
+        with self._lock:
+            self._frames.clear()
+            self._codes.clear()
+            self.durable = -1

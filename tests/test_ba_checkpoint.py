@@ -1,0 +1,118 @@
+"""ba's checkpoints (issue 15 item 1) and features' replay of what ba has not checkpointed: a state restored from a
+checkpoint continues exactly as the uninterrupted one; a kill mid-write leaves the previous checkpoint; features
+sends a resumed ba everything after its checkpoint, once, and keeps nothing while no ba checkpoints."""
+from __future__ import annotations
+
+import numpy as np
+
+from services.ba import service
+from services.ba.checkpoint import Checkpointer, path_for, snapshot
+from services.ba.settings import BaSettings
+from services.common import keys
+from services.common.schema import Credit, Eos, FrameLite, Keyframe, KeyframeCodes, Poses
+from services.features.replay import ReplayBuffer
+from tests.test_ba_pipeline_synth import synth_stream
+
+STREAM = "t0"
+
+
+def _settings() -> BaSettings:
+    return BaSettings(stream=STREAM, device="cpu", threads=1, init_min_flow=0.5, focal_after=3, iterations=2,
+                      global_iterations=3)
+
+
+def _final_poses(outputs) -> Poses:
+    return [m for _, m in outputs if isinstance(m, Poses)][-1]
+
+
+def test_a_state_restored_from_its_checkpoint_continues_exactly_like_the_uninterrupted_one(tmp_path):
+    cfg = _settings()
+    _, msgs = synth_stream(n_frames=40, rendered=25, every=4, stream=STREAM, width=256)
+    uninterrupted = service.build_state(cfg)
+    for msg in msgs[:14]:
+        service.handle(uninterrupted, msg, cfg)
+    saver = Checkpointer(str(tmp_path), STREAM, "s1", period_s=0.0)
+    assert saver.due()
+    saver.save(uninterrupted)
+    assert saver.durable == 13 and path_for(tmp_path, STREAM, "s1").is_file()
+
+    resumed = service.build_state(cfg)  # a new process: nothing but the file
+    loader = Checkpointer(str(tmp_path), STREAM, "s1", period_s=2.0)
+    assert service._resume(resumed, loader, cfg) == 13 and loader.durable == 13
+    assert resumed.frontend.graph.seqs == uninterrupted.frontend.graph.seqs and resumed.keyframes == 4
+    for msg in msgs[14:]:
+        a, b = service.handle(uninterrupted, msg, cfg), service.handle(resumed, msg, cfg)
+    pa, pb = _final_poses(a), _final_poses(b)
+    assert pa.final and pa.frame_seqs.tolist() == pb.frame_seqs.tolist() == list(range(25))
+    np.testing.assert_array_equal(pa.poses, pb.poses)  # the same world frame, the same numbers
+
+    other = Checkpointer(str(tmp_path), STREAM, "s2", period_s=0.0)  # another session never resumes this one
+    assert other.load(resumed.frontend.device) is None
+
+
+def test_a_kill_while_writing_leaves_the_previous_checkpoint(tmp_path):
+    cfg = _settings()
+    _, msgs = synth_stream(n_frames=40, rendered=9, every=4, stream=STREAM, width=128)
+    state = service.build_state(cfg)
+    for msg in msgs[:6]:
+        service.handle(state, msg, cfg)
+    saver = Checkpointer(str(tmp_path), STREAM, "s1", period_s=0.0)
+    saver.save(state)
+    # a process killed mid-write leaves a partial temporary file; the checkpoint itself is the last whole one
+    partial = snapshot(state)[:1000]
+    saver.path.with_suffix(saver.path.suffix + ".tmp").write_bytes(partial)
+    loaded = Checkpointer(str(tmp_path), STREAM, "s1", period_s=0.0).load(state.frontend.device)
+    assert loaded is not None and loaded.seq == 5
+    saver.path.write_bytes(partial)  # a damaged checkpoint: logged, the stream starts afresh instead of crashing
+    assert Checkpointer(str(tmp_path), STREAM, "s1", period_s=0.0).load(state.frontend.device) is None
+    saver.remove()
+    assert not saver.path.exists()
+
+
+def _frame(seq: int) -> FrameLite:
+    return FrameLite(STREAM, seq, seq, image=np.zeros((4, 4), np.uint8), intrinsics=np.ones(4), ref_seq=0)
+
+
+def _keyframe(seq: int) -> Keyframe:
+    return Keyframe(STREAM, seq, seq, image=np.zeros((8, 8, 3), np.uint8), intrinsics=np.ones(4))
+
+
+def _progress(consumer: str, seq: int, durable: int, checkpoints: bool = True) -> Credit:
+    return Credit(STREAM, seq, 0, consumer=consumer, checkpoints=checkpoints, durable=durable)
+
+
+def test_features_sends_a_resumed_ba_what_came_after_its_checkpoint_once():
+    replay = ReplayBuffer(max_messages=100)
+    key = lambda m: keys.topic(STREAM, m.KIND if not isinstance(m, FrameLite) else keys.FRAME_LITE)  # noqa: E731
+    replay.record(key(_frame(0)), _frame(0))  # no ba has said it checkpoints: nothing kept
+    assert replay.on_progress(_progress("ba-a.1", -1, -1, checkpoints=False)) == []
+    assert not replay.active
+    assert replay.on_progress(_progress("ba-a.1", 0, -1)) == [] and replay.active
+    sent = [_frame(1), _keyframe(2), _frame(3), _keyframe(4), _frame(5), _frame(6)]
+    for msg in sent:
+        replay.record(key(msg), msg)
+    codes = KeyframeCodes(STREAM, 2, 0, pca_version=1, codes=np.zeros((1, 1, 2), np.float16))
+    replay.record(keys.topic(STREAM, keys.CODES), codes)
+    replay.on_progress(_progress("ba-a.1", 6, 3))  # its checkpoint holds up to frame 3
+    replay.on_progress(_progress("mapstore-x", 6, -1))  # not ba: ignored
+    eos = Eos(STREAM, 6, 0, stage="features", count=3)
+    replay.record(keys.topic(STREAM, keys.EOS), eos)
+    assert replay.due() == []  # nobody resumed
+    # ba is killed; a new instance resumes from the checkpoint and says so
+    assert replay.on_progress(_progress("ba-b.2", 3, 3)) == ["ba-a.1"]
+    again = replay.due()
+    assert [(type(m).__name__, m.seq) for _, m in again] == [
+        ("Keyframe", 4), ("FrameLite", 5), ("FrameLite", 6), ("Eos", 6), ("KeyframeCodes", 2)]
+    assert replay.due() == [] and replay.replayed == 5  # once
+    assert replay.on_progress(_progress("ba-b.2", 6, 6)) == []  # the same instance again: no replay
+    assert replay.due() == []
+
+
+def test_a_full_replay_buffer_gives_up_the_oldest_and_counts_them():
+    replay = ReplayBuffer(max_messages=3)
+    replay.on_progress(_progress("ba-a.1", -1, -1))
+    for seq in range(5):
+        replay.record(keys.topic(STREAM, keys.FRAME_LITE), _frame(seq))
+    assert replay.given_up == 2
+    replay.on_progress(_progress("ba-b.2", -1, -1))  # resumed with no checkpoint at all
+    assert [m.seq for _, m in replay.due()] == [2, 3, 4]

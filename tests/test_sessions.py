@@ -1,0 +1,233 @@
+"""Sessions (issue 15 item 2): a source that (re)starts on a stream opens a new session; no stage mixes two
+sessions into one state. On a real loopback bus: the scope keeps a worker to its session and stamps what it sends,
+the host starts a fresh worker for a new session, the mapstore moves the previous session's map aside unchanged;
+and through real processes, a restarted publisher gets a new session whose map is its own."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from services.common import keys
+from services.common.bus import Bus
+from services.common.config import BusSettings
+from services.common.errors import DecodeError
+from services.common.schema import Credit, Eos, Poses, decode
+from services.common.streams import StreamHost, StreamScope
+from services.mapstore.sessions import archive_other_session, recorded_session
+from services.mapstore.store import MapStore
+from tests.conftest import wait_until
+
+KMVIPE = Path(sys.executable).with_name("kmvipe")
+
+
+def test_session_ids_are_names_that_sort_by_start_time_and_the_wire_checks_them():
+    first = keys.new_session()
+    time.sleep(1.05)
+    second = keys.new_session()
+    assert first < second and keys.check_name(first, "session") == first
+    assert keys.parse_source_session(keys.source("cam1", second)) == ("cam1", second)
+    msg = Eos("cam1", 3, 0, stage="ingest", session=second)
+    assert decode(msg.encode()).session == second
+    assert decode(Eos("cam1", 3, 0, stage="ingest").encode()).session == ""  # outside any session
+    with pytest.raises(DecodeError, match="session"):
+        decode(Eos("cam1", 3, 0, stage="ingest", session="a/b").encode())
+
+
+def test_a_scope_serves_one_session_and_stamps_what_it_sends(tcp_endpoint):
+    with Bus(BusSettings(mode="peer", listen=[tcp_endpoint]), "source") as source, \
+            Bus(BusSettings(mode="client", connect=[tcp_endpoint]), "features") as bus, \
+            Bus(BusSettings(mode="client", connect=[tcp_endpoint]), "ingest") as sink:
+        got, sent = [], []
+        scope = StreamScope(bus, "cam1")  # pinned: takes the session of the first message that has one
+        scope.subscribe(keys.topic("cam1", keys.EOS), lambda d: got.append(d.msg), [Eos])
+        sink.subscribe(keys.topic("cam1", keys.CREDIT), lambda d: sent.append(d.msg), [Credit])
+        wait_until(lambda: _routed(source, keys.topic("cam1", keys.EOS), got, Eos("cam1", -1, 0, stage="x")), 10,
+                   "the subscription routed")
+        got.clear()
+        source.publish(keys.topic("cam1", keys.EOS), Eos("cam1", 1, 0, stage="a", session="s1"))
+        source.publish(keys.topic("cam1", keys.EOS), Eos("cam1", 2, 0, stage="b", session="s2"))  # another session
+        source.publish(keys.topic("cam1", keys.EOS), Eos("cam1", 3, 0, stage="c", session="s1"))
+        source.publish(keys.topic("cam1", keys.EOS), Eos("cam1", 4, 0, stage="d"))  # no session: kept
+        wait_until(lambda: len(got) == 3, 10, "three messages")
+        assert [m.seq for m in got] == [1, 3, 4] and scope.session == "s1"
+        assert bus.stats.counts[(keys.topic("cam1", keys.EOS), "session")] == 1  # counted, not silent
+        scope.publish(keys.topic("cam1", keys.CREDIT), Credit("cam1", 7, 0, consumer="f"))
+        wait_until(lambda: sent, 10, "credit")
+        assert sent[0].session == "s1"
+        scope.close()
+
+
+def _routed(bus: Bus, key: str, got: list, probe) -> bool:
+    bus.publish(key, probe)
+    time.sleep(0.1)
+    return bool(got)
+
+
+def test_a_new_session_on_a_stream_ends_the_old_worker_and_starts_a_fresh_one(tcp_endpoint):
+    with Bus(BusSettings(mode="peer", listen=[tcp_endpoint]), "source") as source, \
+            Bus(BusSettings(mode="client", connect=[tcp_endpoint]), "ba") as bus:
+        runs: list[tuple[str, str | None]] = []
+        ended: list[str | None] = []
+
+        def worker(stream, scope, stop):
+            runs.append((stream, scope.session))
+            scope.subscribe(keys.topic(stream, keys.FRAME), lambda d: None)
+            stop.wait()
+            ended.append(scope.session)
+
+        host = StreamHost(bus, worker, idle_s=30, linger_s=0.2)
+        stop = threading.Event()
+        thread = threading.Thread(target=host.run, args=(stop,), daemon=True)
+        thread.start()
+        first = source.announce("cam1", "20261125T100000-aaaa")
+        try:
+            wait_until(lambda: runs == [("cam1", "20261125T100000-aaaa")], 10, "the first session's worker")
+            # the publisher restarts: its new token may appear before the old one's lease ran out
+            second = source.announce("cam1", "20261125T100500-bbbb")
+            wait_until(lambda: len(runs) == 2, 10, "the new session's worker")
+            assert runs[1] == ("cam1", "20261125T100500-bbbb") and ended == ["20261125T100000-aaaa"]
+            first.undeclare()  # the old token going changes nothing
+            stop.wait(0.5)
+            assert len(runs) == 2 and host.served["cam1"].scope.session == "20261125T100500-bbbb"
+            second.undeclare()
+        finally:
+            stop.set()
+            thread.join(timeout=10)
+
+
+def _map_with_keyframes(path: Path, session: str | None, n: int) -> None:
+    with MapStore(path) as store:
+        if session is not None:
+            store.set_meta({"session": session})
+        store._write([("INSERT INTO keyframes (kf_id, t_ns, pca_version, height, width, colours) "
+                       "VALUES (?, ?, -1, 1, 1, x'00')", (i, i)) for i in range(n)])
+
+
+def test_the_previous_sessions_map_is_moved_aside_whole_and_a_restart_keeps_its_own(tmp_path):
+    path = tmp_path / "cam1.db"
+    assert archive_other_session(path, "s2") is None  # no map yet
+    _map_with_keyframes(path, "s1", 3)
+    assert archive_other_session(path, "s1") is None and recorded_session(path) == "s1"  # same session: reopened
+    archive = archive_other_session(path, "s2")
+    assert archive == tmp_path / "cam1.s1.db" and not path.exists()
+    with sqlite3.connect(archive) as db:
+        assert db.execute("SELECT count(*) FROM keyframes").fetchone()[0] == 3
+        assert db.execute("SELECT value FROM meta WHERE key = 'session'").fetchone()[0] == "s1"
+
+
+# --- real processes ------------------------------------------------------------------------------------------------
+
+SPEC = "synth:frames=40,width=256,height=192"
+
+
+def _start(args: list[str], env: dict[str, str], log: Path) -> subprocess.Popen:
+    return subprocess.Popen([str(KMVIPE), *args], env=env, stdout=log.open("ab"), stderr=subprocess.STDOUT,
+                            stdin=subprocess.DEVNULL)
+
+
+def _stop(procs: list[subprocess.Popen]) -> None:
+    for proc in procs:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+    for proc in procs:
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def _map_rows(path: Path) -> tuple[list, list]:
+    with sqlite3.connect(path) as db:
+        return (db.execute("SELECT * FROM keyframes ORDER BY kf_id").fetchall(),
+                db.execute("SELECT key, value FROM meta ORDER BY key").fetchall())
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_a_restarted_publisher_opens_a_new_session_and_the_old_sessions_map_is_unchanged(tmp_path, tcp_endpoint):
+    base = {k: v for k, v in os.environ.items() if not k.startswith("KMVIPE_")}
+    env = {**base, "KMVIPE_BUS_MODE": "client", "KMVIPE_BUS_CONNECT": json.dumps([tcp_endpoint]),
+           "KMVIPE_BUS_LISTEN": "[]", "KMVIPE_FEATURES_BACKBONE": "synth-oracle",
+           "KMVIPE_FEATURES_ORACLE_SOURCE": SPEC, "KMVIPE_MAPSTORE_DB_PATH": str(tmp_path / "maps" / "{stream}.db")}
+    poses: dict[str, dict[int, np.ndarray]] = {}
+    ended: set[str] = set()
+    lock = threading.Lock()
+
+    def on_pose(delivery) -> None:
+        with lock:
+            book = poses.setdefault(delivery.msg.session, {})
+            book.update({int(s): np.asarray(p) for s, p in zip(delivery.msg.frame_seqs, delivery.msg.poses)})
+
+    def on_eos(delivery) -> None:
+        if delivery.msg.stage == "mapstore":
+            with lock:
+                ended.add(delivery.msg.session)
+
+    procs: list[subprocess.Popen] = []
+    db = tmp_path / "maps" / "cam1.db"
+    with Bus(BusSettings(mode="router", listen=[tcp_endpoint]), "test") as bus:
+        bus.subscribe(keys.topic("cam1", keys.POSE), on_pose, [Poses])
+        bus.subscribe(keys.topic("cam1", keys.EOS), on_eos, [Eos])
+        try:
+            for name in ("features", "ba", "mapstore"):
+                procs.append(_start(["service", name], env, tmp_path / f"{name}.log"))
+            wait_until(lambda: {"features", "ba", "mapstore"} <= set(bus.alive(timeout=0.5)), 120, "services ready")
+            # the first publisher dies mid-stream (kill -9: no end of stream, its token lingers for a while)
+            first = _start(["publish", SPEC, "--stream", "cam1", "--pacing", "lossless", "--connect", tcp_endpoint],
+                           env, tmp_path / "publish-1.log")
+            wait_until(lambda: len(next(iter(poses.values()), {})) >= 15, 240, "the first session posed 15 frames")
+            first.kill()
+            first.wait()
+            session1 = next(iter(poses))
+            time.sleep(3.0)  # what was in flight settles into the first session's map
+            before = _map_rows(db)
+            assert ("session", session1) in before[1] and len(before[0]) >= 3
+            procs.append(_start(["publish", SPEC, "--stream", "cam1", "--pacing", "lossless", "--connect",
+                                 tcp_endpoint], env, tmp_path / "publish-2.log"))
+            wait_until(lambda: len(ended) == 1, 300, "the second session's end of stream")
+        finally:
+            _stop(procs)
+    session2 = next(iter(ended))
+    logs = "\n".join(p.read_text() for p in tmp_path.glob("*.log"))
+    assert session2 != session1 and session2 > session1, logs[-3000:]
+    assert set(poses[session2]) >= set(range(40)), (sorted(poses[session2]), logs[-3000:])  # every frame posed
+    # a new world frame: the second session starts at the identity again, not where the first one was left
+    assert np.allclose(poses[session2][0], np.eye(4), atol=1e-6)
+    archive = tmp_path / "maps" / f"cam1.{session1}.db"
+    assert _map_rows(archive) == before  # the old session's map, moved aside unchanged
+    rows, meta = _map_rows(db)
+    assert ("session", session2) in meta and len(rows) >= 3
+    for name in ("features", "ba", "mapstore"):
+        text = (tmp_path / f"{name}.log").read_text()
+        assert "Traceback" not in text, text[-3000:]
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_a_second_run_into_the_same_folder_starts_a_new_map_and_keeps_the_first(tmp_path):
+    """`kmvipe run` twice with the same --out: the pinned mapstore reopens map.db, sees the second run's session
+    on its first message and moves the first run's map aside instead of fusing the second into it."""
+    spec = "synth:frames=120,seed=0"
+    env = {**os.environ, "KMVIPE_FEATURES_BACKBONE": "synth-oracle", "KMVIPE_FEATURES_ORACLE_SOURCE": spec}
+    cmd = [str(KMVIPE), "run", spec, "--out", "out", "--skip", "query_api", "--max-frames", "16"]
+    first = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=280)
+    assert first.returncode == 0, first.stderr[-3000:]
+    before = _map_rows(tmp_path / "out" / "map.db")
+    session1 = dict(before[1])["session"]
+    second = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=280)
+    assert second.returncode == 0, second.stderr[-3000:]
+    rows, meta = _map_rows(tmp_path / "out" / "map.db")
+    assert dict(meta)["session"] > session1
+    assert len(rows) == len(before[0])  # the same 16 frames again: as many keyframes, not twice as many
+    assert _map_rows(tmp_path / "out" / f"map.{session1}.db") == before
