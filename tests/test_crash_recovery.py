@@ -6,12 +6,9 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import sqlite3
 import subprocess
-import sys
 import threading
-from pathlib import Path
 
 import httpx
 import numpy as np
@@ -26,27 +23,10 @@ from services.evaluation.trajectory_io import Trajectory
 from services.ingest.sources import open_source
 from services.runner.children import free_tcp_endpoint
 from tests.conftest import wait_until
+from tests.helpers.processes import start, stop
 
-KMVIPE = Path(sys.executable).with_name("kmvipe")
 FRAMES = 60
 SPEC = f"synth:frames={FRAMES},width=256,height=192"
-
-
-def _start(args: list[str], env: dict[str, str], log: Path) -> subprocess.Popen:
-    return subprocess.Popen([str(KMVIPE), *args], env=env, stdout=log.open("ab"), stderr=subprocess.STDOUT,
-                            stdin=subprocess.DEVNULL)
-
-
-def _stop(procs: list[subprocess.Popen]) -> None:
-    for proc in procs:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-    for proc in procs:
-        try:
-            proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
 
 
 @pytest.mark.slow
@@ -82,12 +62,12 @@ def test_ba_killed_mid_stream_resumes_in_the_same_world_frame_and_every_frame_is
         bus.subscribe(keys.topic("cam1", keys.POSE), on_pose, [Poses])
         bus.subscribe(keys.topic("cam1", keys.EOS), on_eos, [Eos])
         try:
-            services = {name: _start(["service", name], env, logs / f"{name}.log")
+            services = {name: start(["service", name], env, logs / f"{name}.log")
                         for name in ("features", "ba", "mapstore", "query_api")}
             procs.extend(services.values())
             wait_until(lambda: {"features", "ba", "mapstore", "query_api"} <= set(bus.alive(timeout=0.5)), 120,
                        "services ready")
-            procs.append(_start(["publish", SPEC, "--stream", "cam1", "--pacing", "lossless", "--connect",
+            procs.append(start(["publish", SPEC, "--stream", "cam1", "--pacing", "lossless", "--connect",
                                  tcp_endpoint], env, logs / "publish.log"))
             checkpoints = tmp_path / "ba"
             wait_until(lambda: len(mapped) >= 20 and any(checkpoints.glob("cam1.*.ckpt")), 240,
@@ -95,13 +75,13 @@ def test_ba_killed_mid_stream_resumes_in_the_same_world_frame_and_every_frame_is
             assert not ended.is_set() and max(mapped) < FRAMES - 10, "the kill must land mid-stream"
             services["ba"].kill()  # kill -9
             services["ba"].wait()
-            procs.append(_start(["service", "ba"], env, logs / "ba-restarted.log"))  # restart: unless-stopped
+            procs.append(start(["service", "ba"], env, logs / "ba-restarted.log"))  # restart: unless-stopped
             assert ended.wait(300), (logs / "ba-restarted.log").read_text()[-3000:]
             with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=15) as http:
                 answer = http.get("/v1/streams/cam1/trajectory")
                 streams = http.get("/v1/streams").json()["streams"]
         finally:
-            _stop(procs)
+            stop(procs)
     restarted = (logs / "ba-restarted.log").read_text()
     assert "resumed from checkpoint" in restarted, restarted[-3000:]
     assert answer.status_code == 200, answer.text

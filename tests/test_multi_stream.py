@@ -5,13 +5,10 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import sqlite3
 import subprocess
-import sys
 import threading
 import time
-from pathlib import Path
 
 import pytest
 
@@ -20,27 +17,10 @@ from services.common.bus import Bus
 from services.common.config import BusSettings
 from services.common.schema import Eos, Poses
 from tests.conftest import wait_until
+from tests.helpers.processes import start, stop
 
-KMVIPE = Path(sys.executable).with_name("kmvipe")
 SPEC = "synth:frames=24,width=256,height=192"
 STREAMS = ("cam1", "cam2", "cam3")
-
-
-def _start(args: list[str], env: dict[str, str], log: Path) -> subprocess.Popen:
-    return subprocess.Popen([str(KMVIPE), *args], env=env, stdout=log.open("wb"), stderr=subprocess.STDOUT,
-                            stdin=subprocess.DEVNULL)
-
-
-def _stop(procs: list[subprocess.Popen]) -> None:
-    for proc in procs:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-    for proc in procs:
-        try:
-            proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
 
 
 @pytest.mark.slow
@@ -70,7 +50,7 @@ def test_three_cameras_each_get_every_frame_posed_and_their_own_map(tmp_path, tc
         bus.subscribe(keys.topic("*", keys.EOS), on_eos, [Eos])
         try:
             for name in ("features", "ba", "mapstore"):
-                procs.append(_start(["service", name], env, tmp_path / f"{name}.log"))
+                procs.append(start(["service", name], env, tmp_path / f"{name}.log"))
             wait_until(lambda: {"features", "ba", "mapstore"} <= set(bus.alive(timeout=0.5)), 120, "services ready")
             # a fourth source announces itself and sends garbage on its frame key
             garbage = bus.announce("junk")
@@ -78,12 +58,12 @@ def test_three_cameras_each_get_every_frame_posed_and_their_own_map(tmp_path, tc
                 bus.put(keys.topic("junk", keys.FRAME), b"\x93not a frame")
             began = time.monotonic()
             for stream in STREAMS:
-                procs.append(_start(["publish", SPEC, "--stream", stream, "--pacing", "lossless", "--connect",
+                procs.append(start(["publish", SPEC, "--stream", stream, "--pacing", "lossless", "--connect",
                                      tcp_endpoint], env, tmp_path / f"publish-{stream}.log"))
             wait_until(lambda: set(STREAMS) <= set(ended), 420, "every stream's end of stream")
             garbage.undeclare()
         finally:
-            _stop(procs)
+            stop(procs)
     logs = {p.name: p.read_text() for p in tmp_path.glob("*.log")}
     for stream in STREAMS:
         assert poses[stream] >= set(range(24)), (stream, sorted(poses[stream]), logs.get("ba.log", "")[-2000:])

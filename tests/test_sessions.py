@@ -6,10 +6,8 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import sqlite3
 import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -26,8 +24,8 @@ from services.common.streams import StreamHost, StreamScope
 from services.mapstore.sessions import archive_other_session, recorded_session
 from services.mapstore.store import MapStore
 from tests.conftest import wait_until
+from tests.helpers.processes import KMVIPE, start, stop
 
-KMVIPE = Path(sys.executable).with_name("kmvipe")
 
 
 def test_session_ids_are_names_that_sort_by_start_time_and_the_wire_checks_them():
@@ -130,23 +128,6 @@ def test_the_previous_sessions_map_is_moved_aside_whole_and_a_restart_keeps_its_
 SPEC = "synth:frames=40,width=256,height=192"
 
 
-def _start(args: list[str], env: dict[str, str], log: Path) -> subprocess.Popen:
-    return subprocess.Popen([str(KMVIPE), *args], env=env, stdout=log.open("ab"), stderr=subprocess.STDOUT,
-                            stdin=subprocess.DEVNULL)
-
-
-def _stop(procs: list[subprocess.Popen]) -> None:
-    for proc in procs:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-    for proc in procs:
-        try:
-            proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-
-
 def _map_rows(path: Path) -> tuple[list, list]:
     with sqlite3.connect(path) as db:
         return (db.execute("SELECT * FROM keyframes ORDER BY kf_id").fetchall(),
@@ -181,10 +162,10 @@ def test_a_restarted_publisher_opens_a_new_session_and_the_old_sessions_map_is_u
         bus.subscribe(keys.topic("cam1", keys.EOS), on_eos, [Eos])
         try:
             for name in ("features", "ba", "mapstore"):
-                procs.append(_start(["service", name], env, tmp_path / f"{name}.log"))
+                procs.append(start(["service", name], env, tmp_path / f"{name}.log"))
             wait_until(lambda: {"features", "ba", "mapstore"} <= set(bus.alive(timeout=0.5)), 120, "services ready")
             # the first publisher dies mid-stream (kill -9: no end of stream, its token lingers for a while)
-            first = _start(["publish", SPEC, "--stream", "cam1", "--pacing", "lossless", "--connect", tcp_endpoint],
+            first = start(["publish", SPEC, "--stream", "cam1", "--pacing", "lossless", "--connect", tcp_endpoint],
                            env, tmp_path / "publish-1.log")
             wait_until(lambda: len(next(iter(poses.values()), {})) >= 15, 240, "the first session posed 15 frames")
             first.kill()
@@ -193,11 +174,11 @@ def test_a_restarted_publisher_opens_a_new_session_and_the_old_sessions_map_is_u
             time.sleep(3.0)  # what was in flight settles into the first session's map
             before = _map_rows(db)
             assert ("session", session1) in before[1] and len(before[0]) >= 3
-            procs.append(_start(["publish", SPEC, "--stream", "cam1", "--pacing", "lossless", "--connect",
+            procs.append(start(["publish", SPEC, "--stream", "cam1", "--pacing", "lossless", "--connect",
                                  tcp_endpoint], env, tmp_path / "publish-2.log"))
             wait_until(lambda: len(ended) == 1, 300, "the second session's end of stream")
         finally:
-            _stop(procs)
+            stop(procs)
     session2 = next(iter(ended))
     logs = "\n".join(p.read_text() for p in tmp_path.glob("*.log"))
     assert session2 != session1 and session2 > session1, logs[-3000:]
