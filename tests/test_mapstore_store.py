@@ -138,3 +138,26 @@ def test_every_acknowledged_keyframe_survives_sigkill(tmp_path, synchronous):
     for i in loaded.contents:  # anything beyond the last ack is complete or absent, never torn
         if i in loaded.depths:
             assert_same_keyframe(loaded, i)
+
+
+def test_frame_poses_keep_mappings_revision_over_a_later_tracking_pose(tmp_path):
+    from services.common.schema import Poses
+    from services.mapstore.poselog import PoseLog
+
+    eye = np.eye(4)
+    moved = np.eye(4)
+    moved[:3, 3] = (1.0, 2.0, 3.0)
+    log = PoseLog()
+    log.add(Poses("s", 2, 0, frame_seqs=np.array([2, 0]), stamps_ns=np.array([20, 0]), poses=np.stack([eye, eye]),
+                  tracked=True))
+    log.add(Poses("s", 2, 0, frame_seqs=np.array([2]), stamps_ns=np.array([20]), poses=moved[None]))  # mapped
+    log.add(Poses("s", 2, 0, frame_seqs=np.array([2]), stamps_ns=np.array([20]), poses=eye[None], tracked=True))
+    with MapStore(tmp_path / "m.db") as store:
+        assert log.flush(store) == 2 and log.flush(store) == 0
+        # across flushes too: tracking's late pose of frame 2 does not replace mapping's
+        store.put_frame_poses([(2, 20, eye, False), (1, 10, eye, False)])
+        seqs, stamps, poses = store.frame_poses()
+    assert seqs.tolist() == [0, 1, 2] and stamps.tolist() == [0, 10, 20]
+    np.testing.assert_array_equal(poses[2], moved)
+    with MapStore(tmp_path / "m.db") as store:  # durable
+        assert store.frame_poses()[0].tolist() == [0, 1, 2]

@@ -6,6 +6,7 @@
 | segment | ``MapQuery`` payload (the vectors are the label set) | ``MapSegment``: per-point argmax label and score |
 | export | selector ``?chunk=i;chunk_size=n`` | ``MapChunk`` i of the fused map |
 | stats | — | ``MapStats`` |
+| trajectory | — | ``Poses``: every frame's latest pose (mapping's revisions over tracking's), by seq |
 
 Voxels that only keyframes whose codes have not arrived saw have no code: they are absent from scoring (NaN in
 ``all_scores`` and ``MapSegment.score``, label −1, never a top point or in a region), not scored as the zero code.
@@ -18,7 +19,7 @@ import time
 
 import numpy as np
 
-from services.common.schema import MapAnswer, MapChunk, MapQuery, MapSegment, MapStats, decode
+from services.common.schema import MapAnswer, MapChunk, MapQuery, MapSegment, MapStats, Poses, decode
 from services.mapstore.core.regions import find_regions
 from services.mapstore.state import MapState
 
@@ -105,4 +106,8 @@ def answer(state: MapState, stream: str, key: str, params: dict, payload: bytes 
             return export(state, stream, int(params.get("chunk", 0)), int(params.get("chunk_size", DEFAULT_CHUNK))).encode()
         if verb == "stats":
             return stats(state, stream).encode()
-    raise KeyError(f"unknown map verb {verb!r}; known: query, segment, export, stats")
+    if verb == "trajectory":  # outside the map's lock: it reads the database only
+        seqs, stamps, poses = state.trajectory()
+        return Poses(stream, len(seqs), time.time_ns(), frame_seqs=seqs, stamps_ns=stamps, poses=poses,
+                     session=state.session).encode()
+    raise KeyError(f"unknown map verb {verb!r}; known: query, segment, export, stats, trajectory")

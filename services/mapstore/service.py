@@ -29,7 +29,7 @@ from services.common.errors import DecodeError, ServiceTimeout
 from services.common.pca_fetch import BasisFetch
 from services.common.streams import session_of
 from services.common.schema import (Credit, Eos, Graph, Keyframe, KeyframeCodes, Message, PcaBasis as PcaMessage,
-                                    decode)
+                                    Poses, decode)
 from services.mapstore import queries
 from services.mapstore.config import MapstoreSettings
 from services.mapstore.core.keyframe import KeyframeDepth
@@ -202,6 +202,7 @@ def run(cfg: MapstoreSettings, bus: Bus, stop: threading.Event, state: MapState 
                        topic(keys.PCA): [PcaMessage], topic(keys.GRAPH): [Graph], topic(keys.EOS): [Eos]},
                       lossless=True, droppable=())  # every kind is essential: credit bounds the queue, not drops
     consumer = f"mapstore-{bus.instance}"
+    bus.subscribe(topic(keys.POSE), lambda d: state.pose_log.add(d.msg), [Poses])  # the closure follows rebinding
     bus.serve(keys.map_key(cfg.stream, "**"), lambda key, params, payload: queries.answer(state, cfg.stream, key, params, payload))
     bus.ready()
     _fetch_current_basis(state, bus, cfg)
@@ -233,8 +234,11 @@ def run(cfg: MapstoreSettings, bus: Bus, stop: threading.Event, state: MapState 
             bus.publish(*progress_report(state, cfg, consumer), drop_if_congested=True)
             last_report = time.monotonic()
         fetch.run_due(bus, cfg.stream, state.bases, lambda basis: handle(state, basis, cfg))
+        if state.pose_log.due():
+            state.pose_log.flush(state.store)
         held = state.pending_eos
         if held is not None and (stream_complete(state) or time.monotonic() > state.eos_deadline):
             for key, out in _guarded(finish_stream, state, held, cfg):
                 bus.publish(key, out)
+    state.pose_log.flush(state.store)
     return state

@@ -45,6 +45,7 @@ from services.mapstore.core.geometry import sample_cell_colours
 from services.mapstore.core.keyframe import KeyframeContent, KeyframeDepth
 from services.mapstore.core.map import KeyframeMap, code_maps_to_latest
 from services.mapstore.core.scoring import PcaBasis, ScoringIndex
+from services.mapstore.poselog import PoseLog
 from services.mapstore.sessions import archive_other_session
 from services.mapstore.store import MapStore
 
@@ -75,6 +76,7 @@ class MapState:
             self.map.set_code_space(*code_maps_to_latest(self.bases))
         self.metric = stored.meta.get("metric") == "1"
         self.intrinsics: dict[int, np.ndarray] = {}  # live keyframes' intrinsics as they arrived
+        self.pose_log = PoseLog()  # every frame's pose, for the trajectory (services/mapstore/poselog.py)
         self.realtime: set[int] = set()  # live keyframes of a real-time stream: their codes may never come
         # codes not in the map yet: their keyframe has not arrived (memory only), or their basis (committed)
         self.waiting_codes: dict[int, tuple[int, np.ndarray]] = {}  # kf_id -> (pca_version, (h, w, K) float16)
@@ -138,6 +140,11 @@ class MapState:
             return self
         self.close()
         return MapState(self.cfg, session)
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every frame pose of the stream so far: (N,) seqs, (N,) stamps, (N, 4, 4) world_from_cam."""
+        self.pose_log.flush(self.store)
+        return self.store.frame_poses()
 
     # ----- writes ---------------------------------------------------------------------------------
     def add_keyframe(self, kf_id: int, t_ns: int, image: np.ndarray, codes: np.ndarray | None,

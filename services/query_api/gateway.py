@@ -13,7 +13,7 @@ import numpy as np
 
 from ..common import keys
 from ..common.bus import Bus, Delivery
-from ..common.errors import KmVipeError, ModelError
+from ..common.errors import KmVipeError, ModelError, ServiceTimeout
 from ..common.models import ModelStore
 from ..common.models.backbones import normalise_rgb
 from ..common.schema import MapAnswer, MapSegment, Poses
@@ -21,7 +21,7 @@ from .config import QuerySettings
 from .core.answers import QueryResult, RegionParams, group_answer
 from .core.example import box_mask, fit_to_patches, pooled_feature
 from .core.trajectory import PoseBook, Trajectory
-from .mapclient import MapClient, QueryOptions
+from .mapclient import MapClient, MapServiceError, QueryOptions, StreamNotFound
 from .textpath import SpaceMismatch, TextPath
 
 log = logging.getLogger(__name__)
@@ -71,9 +71,27 @@ class Gateway:
             book.update(msg.frame_seqs, msg.stamps_ns, msg.poses, msg.final)
 
     def trajectory(self, stream: str) -> Trajectory | None:
+        """Every frame's latest pose: the mapstore's record of the stream (it outlives this process), with what
+        this gateway saw on the bus after it; this gateway's own poses alone when no mapstore answers."""
+        stored = self._stored_trajectory(stream)
         with self._poses_lock:
             book = self._poses.get(stream)
-            return book.trajectory() if book is not None else None
+            seen = book.trajectory() if book is not None else None
+            session = self._pose_sessions.get(stream, "")
+        if stored is None or (session and stored.session and stored.session != session):
+            return seen
+        merged = PoseBook()
+        if seen is not None:
+            merged.update(seen.seqs, seen.stamps_ns, seen.poses)
+        merged.update(stored.frame_seqs, stored.stamps_ns, stored.poses)  # the mapstore's keep mapping's revisions
+        return merged.trajectory() if len(merged) else None
+
+    def _stored_trajectory(self, stream: str) -> Poses | None:
+        try:
+            return self.maps.trajectory(stream)
+        except (StreamNotFound, ServiceTimeout, MapServiceError) as exc:
+            log.debug("no stored trajectory; the poses seen here answer", extra={"stream": stream, "error": str(exc)})
+            return None
 
     def pose_streams(self) -> dict[str, int]:
         with self._poses_lock:

@@ -1,4 +1,4 @@
-"""The gateway's side of the mapstore queryables (``kmvipe/<s>/map/{query,segment,export,stats}``).
+"""The gateway's side of the mapstore queryables (``kmvipe/<s>/map/{query,segment,export,stats,trajectory}``).
 
 Blocking Zenoh calls; the HTTP layer runs them in a worker thread. A request that finds no queryable at all
 answers at once in Zenoh, which is how an unknown stream is told apart from a slow mapstore (a timeout).
@@ -16,7 +16,7 @@ import zenoh
 from ..common import keys
 from ..common.bus import Bus
 from ..common.errors import DecodeError, KmVipeError, ServiceTimeout
-from ..common.schema import MapAnswer, MapChunk, MapQuery, MapSegment, MapStats, Message, decode
+from ..common.schema import MapAnswer, MapChunk, MapQuery, MapSegment, MapStats, Message, Poses, decode
 
 log = logging.getLogger(__name__)
 MAPSTORE = "mapstore"
@@ -77,6 +77,10 @@ class MapClient:
                        space=space, top_k=opts.top_k, threshold=opts.threshold, max_regions=opts.max_regions,
                        with_points=opts.with_points)
         return msg.encode()
+
+    def trajectory(self, stream: str) -> Poses:
+        """Every frame pose the mapstore has recorded for the stream's current session."""
+        return self._ask(stream, "trajectory", None, Poses)  # type: ignore[return-value]
 
     def stats(self, stream: str) -> MapStats:
         return self._ask(stream, "stats", None, MapStats)  # type: ignore[return-value]
