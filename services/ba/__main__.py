@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import sys
 
+from services.ba.checkpoint import pending
 from services.ba.service import build_state, run
 from services.ba.settings import BaSettings
 from services.common.service_main import service_main
@@ -18,7 +19,7 @@ def _body(bus, stop) -> None:
         settings = cfg.model_copy(update={"stream": stream})
         run(settings, stream_bus, stream_stop, build_state(settings))
 
-    serve(cfg.stream, bus, stop, one)
+    serve(cfg.stream, bus, stop, one, resume=lambda: pending(cfg.checkpoint_dir))  # streams killed mid-way
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -73,6 +73,20 @@ def read(path: Path) -> bytes | None:
         return None
 
 
+def pending(directory: str | Path, max_age_s: float = 3600.0) -> list[tuple[str, str]]:
+    """(stream, session) of every checkpoint in ``directory``: streams killed before their end, to resume at start.
+    Checkpoints older than ``max_age_s`` are of streams nobody will finish: removed."""
+    found = []
+    for path in sorted(Path(directory).glob("*.ckpt")) if directory else []:
+        stream, _, session = path.stem.partition(".")
+        if time.time() - path.stat().st_mtime > max_age_s:
+            log.info("stale checkpoint removed", extra={"path": str(path)})
+            path.unlink(missing_ok=True)
+        elif stream and session and session != "nosession":
+            found.append((stream, session))
+    return found
+
+
 class Checkpointer:
     """When to checkpoint a stream's state, where, and what the last one holds (``durable``)."""
 

@@ -46,6 +46,7 @@ class StreamScope:
         self._handles: list = []
         self.last_activity = time.monotonic()  # a message in, or one out that is not a heartbeat
         self.finished_at: float | None = None  # when the worker last sent its end of stream
+        self.holding = False  # the worker still has work after its end of stream (features: a ba may resume)
 
     @property
     def instance(self) -> str:
@@ -84,6 +85,10 @@ class StreamScope:
         for key, kinds in subscriptions.items():
             self.subscribe(key, box.put, kinds)
         return box
+
+    def hold(self, holding: bool) -> None:
+        """Keep (True) or no longer keep this stream served after its end of stream, until ``idle_s``."""
+        self.holding = holding
 
     def serve(self, key: str, handler):
         handle = self.bus.serve(key, handler)
@@ -129,8 +134,12 @@ class StreamHost:
     counted in ``refused``) until one is released."""
 
     def __init__(self, bus: Bus, worker: StreamWorker, shard: ShardSettings | None = None, idle_s: float = 60.0,
-                 max_streams: int = 16, linger_s: float | None = 2.0):
+                 max_streams: int = 16, linger_s: float | None = 2.0,
+                 resume: Callable[[], Iterable[tuple[str, str]]] | None = None):
+        """``resume``: the (stream, session) pairs this service has unfinished durable work for (ba's
+        checkpoints); their workers start at once, with or without a source (it may have ended meanwhile)."""
         self.bus, self.worker, self.idle_s, self.max_streams = bus, worker, idle_s, max_streams
+        self.resume = resume
         self.linger_s = linger_s
         self.shard = shard or ShardSettings()
         self.served: dict[str, _Served] = {}
@@ -152,6 +161,12 @@ class StreamHost:
         """Serve until ``stop``; then stop every worker."""
         self.bus.watch_sources(self.on_source)
         self.bus.ready()
+        for stream, session in (self.resume() if self.resume else ()):
+            if stream not in self.served:
+                log.info("resuming a stream's unfinished work", extra={"stream": stream, "session": session})
+                self._start(stream, session)
+                if stream in self.served:  # no source seen yet: released like a stream whose source went
+                    self.served[stream].gone_since = time.monotonic()
         try:
             while not stop.wait(poll_s):
                 self.step()
@@ -192,7 +207,7 @@ class StreamHost:
     @staticmethod
     def _finished(served: _Served) -> bool:
         scope = served.scope
-        return scope.finished_at is not None and scope.finished_at >= scope.last_activity
+        return not scope.holding and scope.finished_at is not None and scope.finished_at >= scope.last_activity
 
     def _make_room(self) -> bool:
         """Release the finished stream (its sources gone) that was quiet longest, if there is one."""
@@ -242,6 +257,12 @@ def session_of(bus) -> str | None:
     return bus.session if isinstance(bus, StreamScope) else None
 
 
+def hold(bus, holding: bool) -> None:
+    """Keep a worker's stream served after its end of stream while ``holding`` (a no-op outside a host)."""
+    if isinstance(bus, StreamScope):
+        bus.hold(holding)
+
+
 class HostSettings(BaseSettings):
     """How a service that serves every stream handles them (env prefix ``KMVIPE_STREAMS_``)."""
 
@@ -254,7 +275,8 @@ class HostSettings(BaseSettings):
 
 
 def serve(stream: str, bus: Bus, stop: threading.Event, run_one: Callable[[str, object, threading.Event], object],
-          host: HostSettings | None = None, keep_finished: bool = False) -> None:
+          host: HostSettings | None = None, keep_finished: bool = False,
+          resume: Callable[[], Iterable[tuple[str, str]]] | None = None) -> None:
     """``run_one(stream, bus, stop)`` for one named stream, or, for :data:`keys.ALL_STREAMS`, a :class:`StreamHost`
     running it for every stream a source announces (each with a :class:`StreamScope` as its bus). With
     ``keep_finished`` a finished stream stays served until a new one needs its place."""
@@ -267,4 +289,4 @@ def serve(stream: str, bus: Bus, stop: threading.Event, run_one: Callable[[str, 
         return
     host = host or HostSettings()
     StreamHost(bus, run_one, ShardSettings(), host.idle_s, host.max_streams,
-               linger_s=None if keep_finished else 2.0).run(stop)
+               linger_s=None if keep_finished else 2.0, resume=resume).run(stop)

@@ -28,6 +28,7 @@ from ..common.device import resolve_device
 from ..common.models.loaders import load_backbone, load_depth_model
 from ..common.models.store import ModelStore
 from ..common.schema import Credit, Eos, Frame, FrameLite, Intrinsics, Keyframe, KeyframeCodes, Message, PcaBasis
+from ..common.streams import hold
 from .replay import ReplayBuffer
 from .config import FeaturesSettings
 from .core.geometry import Intrinsics as K4
@@ -71,6 +72,7 @@ class FeaturesState:
     sent: deque = field(default_factory=deque)
     inbox: Inbox | None = None  # the service loop's, whose real-time drops count for this stream
     replay: ReplayBuffer = field(default_factory=ReplayBuffer)  # sent to ba since its last checkpoint
+    ba_finished: bool = False  # ba sent its end of stream: no ba will resume and need the replay
     started: float = field(default_factory=time.monotonic)  # when this stream's state was made
 
 
@@ -157,6 +159,8 @@ def handle_intrinsics(state: FeaturesState, msg: Intrinsics, cfg: FeaturesSettin
 
 def handle_eos(state: FeaturesState, msg: Eos, cfg: FeaturesSettings) -> Outputs:
     """Ingest ended: finish once every frame it sent has arrived (see ``eos_wait_s``)."""
+    if msg.stage == "ba":
+        state.ba_finished = True  # what this stream kept for a resuming ba is needed no more
     if msg.stage != "ingest":
         return []
     if state.frames_seen + state.dropped >= msg.count:  # frames the inbox dropped (real time) are not coming
@@ -300,6 +304,7 @@ def run(cfg: FeaturesSettings, bus: Bus, stop: threading.Event, state: FeaturesS
             for key, out in outputs:
                 bus.publish(key, out)
                 state.replay.record(key, out)
+            hold(bus, state.replay.active and not state.ba_finished)  # served on after its EOS while ba may resume
     finally:
         state.semantics.stop()
     return state
