@@ -212,3 +212,18 @@ def test_a_second_run_into_the_same_folder_starts_a_new_map_and_keeps_the_first(
     assert dict(meta)["session"] > session1
     assert len(rows) == len(before[0])  # the same 16 frames again: as many keyframes, not twice as many
     assert _map_rows(tmp_path / "out" / f"map.{session1}.db") == before
+
+
+def test_a_restarted_mapstore_finds_the_maps_it_left_unfinished(tmp_path):
+    from services.mapstore.sessions import unfinished
+
+    template = str(tmp_path / "maps" / "{stream}.db")
+    (tmp_path / "maps").mkdir()
+    for stream, session, finished in (("cam1", "s1", False), ("cam2", "s2", True), ("cam3", None, False)):
+        _map_with_keyframes(tmp_path / "maps" / f"{stream}.db", session, 2)
+        if finished:
+            with MapStore(tmp_path / "maps" / f"{stream}.db") as store:
+                store.set_meta({"finished": "1"})
+    _map_with_keyframes(tmp_path / "maps" / "cam1.s0.db", "s0", 1)  # an earlier session's map, moved aside
+    assert unfinished(template) == [("cam1", "s1")]  # cam2 ended; cam3 has no session (a pinned run's)
+    assert unfinished(str(tmp_path / "maps" / "map.db")) == []  # no {stream}: one pinned map, nothing to resume

@@ -38,7 +38,7 @@ from services.common.pca_codes import code_map, convert_codes
 from services.common.pca_fetch import BasisFetch
 from services.common.bus import Delivery, Inbox
 from services.common.lifecycle import nice_this_thread
-from services.common.streams import session_of
+from services.common.streams import hold, session_of
 from services.common.schema import (Credit, Eos, FrameLite, Graph, Intrinsics, Keyframe, KeyframeCodes, Message,
                                     PcaBasis, Poses)
 from services.ba.checkpoint import Checkpointer
@@ -72,6 +72,8 @@ class BaState:
     dropped: int = 0  # frames the inboxes dropped by the real-time policy (set at end of stream)
     # frame seq -> (keyframe seq, keyframe_from_cam) from the tracking thread, which fills it
     anchors: dict[int, tuple[int, torch.Tensor, torch.Tensor]] = field(default_factory=dict)
+    ended_upto: int = -1  # the last frame seq of a stream that ended: anything up to it comes again, not anew
+    final_outputs: Outputs = field(default_factory=list)  # the last stream's final graph, poses and EOS
 
 
 def build_state(cfg: BaSettings) -> BaState:
@@ -218,6 +220,8 @@ def handle_eos(state: BaState, msg: Eos, cfg: BaSettings) -> Outputs:
               reason=msg.reason, dropped=state.dropped)
     log.info("stream done", extra={"stream": msg.stream, "keyframes": state.keyframes, "merged": state.merged,
                                    "dropped": state.dropped})
+    state.ended_upto = max(state.last_seq, msg.seq)
+    state.final_outputs = outputs + [(keys.topic(msg.stream, keys.EOS), eos)]  # for a mapstore that restarts
     state.frontend = Frontend(state.frontend.params, state.frontend.device)
     state.keyframes, state.keyframes_seen, state.last_seq, state.merged = 0, 0, -1, 0
     state.early_codes.clear()
@@ -283,6 +287,8 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
         bus.subscribe(topic(name), to_both, [kind])
     tracking = TrackingLoop(cfg.tracker(), bus, track_box, cfg.stream,
                             state.anchors, cfg.tracking_nice)
+    restarted_mapstore = _watch_mapstores(bus, topic(keys.PROGRESS))
+    mapstore_done = False
     tracking.start()
     if (ref := state.frontend.reference()) is not None:  # resumed: tracking starts from mapping's newest keyframe
         tracking.set_reference(ref)
@@ -302,8 +308,15 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
             msg = delivery.msg if delivery is not None else None
             if isinstance(msg, Eos) and msg.stage == "features":
                 eos, msg = (msg, time.monotonic() + cfg.eos_wait_s), None
-            if isinstance(msg, (Keyframe, FrameLite)) and msg.seq <= resumed_at:
-                msg = None  # the checkpoint has it already (in flight when ba was killed)
+            if isinstance(msg, (Keyframe, FrameLite)) and _seen_before(state, msg, resumed_at):
+                msg = None  # sent again (to a consumer that resumed), or in flight when ba was killed
+            if isinstance(msg, Eos) and msg.stage == "mapstore":
+                mapstore_done = True
+            if restarted_mapstore.is_set() and state.final_outputs:  # it may have missed the end: send it again
+                restarted_mapstore.clear()
+                for key, out in state.final_outputs:
+                    bus.publish(key, out)
+            hold(bus, bool(state.final_outputs) and not mapstore_done)
             if msg is not None:
                 state.keyframe_backlog = mapping.count(Keyframe)
                 began = time.monotonic()
@@ -334,6 +347,31 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
     finally:
         tracking.stop()
     return state
+
+
+def _seen_before(state: BaState, msg: Keyframe | FrameLite, resumed_at: int) -> bool:
+    """A frame or keyframe this stream's state already holds: covered by the checkpoint it resumed from, of a
+    stream that ended, or a keyframe no newer than the graph's newest (features sends keyframes in order)."""
+    if msg.seq <= resumed_at or msg.seq <= state.ended_upto:
+        return True
+    graph = state.frontend.graph
+    return isinstance(msg, Keyframe) and graph is not None and bool(graph.seqs) and msg.seq <= graph.seqs[-1]
+
+
+def _watch_mapstores(bus, key: str) -> threading.Event:
+    """Set whenever a mapstore consumer appears after another one did (a mapstore that restarted)."""
+    seen: set[str] = set()
+    restarted = threading.Event()
+
+    def on_progress(delivery: Delivery) -> None:
+        consumer = delivery.msg.consumer
+        if consumer.startswith("mapstore-") and consumer not in seen:
+            if seen:
+                restarted.set()
+            seen.add(consumer)
+
+    bus.subscribe(key, on_progress, [Credit])
+    return restarted
 
 
 def _resume(state: BaState, checkpoints: Checkpointer, cfg: BaSettings) -> int:

@@ -1,4 +1,4 @@
-"""What features sent to ba since ba's last checkpoint, sent again when a ba instance resumes from it.
+"""What features sent to ba (and to the mapstore) since their durable point, sent again when one resumes from it.
 
 ba checkpoints its mapping state now and then (services/ba/checkpoint.py) and says in its progress reports up to
 which frame seq the newest checkpoint holds (``durable``). A ba killed and restarted resumes from that checkpoint
@@ -8,7 +8,11 @@ features keeps those messages (bounded: ``max_messages``; beyond it the oldest a
 a ba consumer it has not heard from before reports after another one did, publishes them again in their original
 order. Nothing is kept while no ba checkpoints. Codes are kept apart from frames: a keyframe's codes come after
 it, possibly after the checkpoint that holds the keyframe, so the newest ``max_codes`` codes are always resent
-(ba takes a repeated one as the same codes again)."""
+(ba takes a repeated one as the same codes again).
+
+The mapstore works the same way with its database as the checkpoint: its progress (the highest keyframe it
+committed) is durable by construction, and a restarted mapstore reports it under a new name; features then sends
+it again the keyframes after it and the newest codes."""
 from __future__ import annotations
 
 import logging
@@ -22,32 +26,38 @@ log = logging.getLogger(__name__)
 
 
 class ReplayBuffer:
-    def __init__(self, max_messages: int = 512, max_codes: int = 64):
+    """What features sent to the consumers named ``prefix`` (``ba-``, ``mapstore-``) after their durable point:
+    messages of ``kinds`` (and features' end of stream with ``eos``) in send order, the newest codes apart."""
+
+    def __init__(self, prefix: str = "ba-", kinds: tuple[type[Message], ...] = (Keyframe, FrameLite),
+                 eos: bool = True, max_messages: int = 512, max_codes: int = 64):
+        self.prefix, self.kinds, self.eos = prefix, kinds, eos
         self.max_messages = max_messages
-        self._frames: deque[tuple[str, Message]] = deque()  # keyframes, frame messages, the EOS: in send order
+        self._frames: deque[tuple[str, Message]] = deque()  # kinds (and the EOS), in send order
         self._codes: deque[tuple[str, Message]] = deque(maxlen=max_codes)
         self._lock = threading.Lock()
-        self._ba: set[str] = set()  # ba consumers heard from
-        self._resume_after: int | None = None  # a new ba instance resumed after this seq: replay on the loop
-        self.active = False  # some ba checkpoints
+        self._seen: set[str] = set()  # consumers heard from
+        self._resume_after: int | None = None  # a new instance resumed after this seq: replay on the loop
+        self.active = False  # such a consumer keeps durable state (a checkpoint, a database)
+        self.finished = False  # it sent its end of stream: nothing more to keep
         self.durable = -1
-        self.given_up = 0  # messages dropped from a full buffer (a ba restarting later misses them)
+        self.given_up = 0  # messages dropped from a full buffer (a consumer restarting later misses them)
         self.replayed = 0
 
     def on_progress(self, msg: Credit) -> list[str]:
-        """A downstream progress report (Zenoh thread). Returns the ba consumers it replaces (gone: a new one
+        """A downstream progress report (Zenoh thread). Returns the consumers it replaces (gone: a new one
         resumed), for the caller to forget."""
-        if not msg.consumer.startswith("ba-") or not msg.checkpoints:
+        if not msg.consumer.startswith(self.prefix) or not msg.checkpoints:
             return []
         with self._lock:
             self.active = True
             replaced: list[str] = []
-            if msg.consumer not in self._ba:
-                if self._ba:  # another ba instance came before: this one resumed from a checkpoint
+            if msg.consumer not in self._seen:
+                if self._seen:  # another instance came before: this one resumed from its durable state
                     self._resume_after = msg.seq
-                    replaced = sorted(self._ba)
-                    self._ba.clear()
-                self._ba.add(msg.consumer)
+                    replaced = sorted(self._seen)
+                    self._seen.clear()
+                self._seen.add(msg.consumer)
             self.durable = max(self.durable, msg.durable) if not replaced else msg.durable
             return replaced
 
@@ -59,7 +69,7 @@ class ReplayBuffer:
             if isinstance(msg, KeyframeCodes):
                 self._codes.append((key, msg))
                 return
-            if not isinstance(msg, (Keyframe, FrameLite)) and not (isinstance(msg, Eos) and key.endswith(keys.EOS)):
+            if not isinstance(msg, self.kinds) and not (self.eos and isinstance(msg, Eos) and key.endswith(keys.EOS)):
                 return
             self._frames.append((key, msg))
             while self._frames and (self._frames[0][1].seq <= self.durable and
@@ -78,8 +88,8 @@ class ReplayBuffer:
             frames = [(k, m) for k, m in self._frames if m.seq > after or isinstance(m, Eos)]
             out = frames + list(self._codes)
         self.replayed += len(out)
-        log.info("ba resumed from its checkpoint: sending again what came after it", extra={
-            "after_seq": after, "messages": len(out), "given_up": self.given_up})
+        log.info("a consumer resumed from its durable state: sending again what came after it", extra={
+            "consumer": self.prefix.rstrip("-"), "after_seq": after, "messages": len(out), "given_up": self.given_up})
         return out
 
     def clear(self) -> None:

@@ -71,8 +71,9 @@ class FeaturesState:
     downstream: dict[str, tuple[int, float]] = field(default_factory=dict)
     sent: deque = field(default_factory=deque)
     inbox: Inbox | None = None  # the service loop's, whose real-time drops count for this stream
-    replay: ReplayBuffer = field(default_factory=ReplayBuffer)  # sent to ba since its last checkpoint
-    ba_finished: bool = False  # ba sent its end of stream: no ba will resume and need the replay
+    # sent to ba since its last checkpoint, and to the mapstore since its last commit
+    replays: tuple[ReplayBuffer, ...] = field(default_factory=lambda: (
+        ReplayBuffer("ba-", (Keyframe, FrameLite), eos=True), ReplayBuffer("mapstore-", (Keyframe,), eos=False)))
     started: float = field(default_factory=time.monotonic)  # when this stream's state was made
 
 
@@ -159,8 +160,9 @@ def handle_intrinsics(state: FeaturesState, msg: Intrinsics, cfg: FeaturesSettin
 
 def handle_eos(state: FeaturesState, msg: Eos, cfg: FeaturesSettings) -> Outputs:
     """Ingest ended: finish once every frame it sent has arrived (see ``eos_wait_s``)."""
-    if msg.stage == "ba":
-        state.ba_finished = True  # what this stream kept for a resuming ba is needed no more
+    for replay in state.replays:  # a consumer that finished will not resume: what was kept for it is done
+        if msg.stage == replay.prefix.rstrip("-"):
+            replay.finished = True
     if msg.stage != "ingest":
         return []
     if state.frames_seen + state.dropped >= msg.count:  # frames the inbox dropped (real time) are not coming
@@ -253,8 +255,9 @@ def credit_limit(state: FeaturesState, cfg: FeaturesSettings, now: float) -> int
 
 def on_progress(state: FeaturesState, msg: Credit) -> None:
     """A downstream stage's progress report (Zenoh thread: dict assignments)."""
-    for gone in state.replay.on_progress(msg):  # a ba that resumed from its checkpoint replaces the killed one
-        state.downstream.pop(gone, None)
+    for replay in state.replays:  # a consumer that resumed from its durable state replaces the killed one
+        for gone in replay.on_progress(msg):
+            state.downstream.pop(gone, None)
     state.downstream[msg.consumer] = (msg.seq, time.monotonic())
 
 
@@ -299,12 +302,15 @@ def run(cfg: FeaturesSettings, bus: Bus, stop: threading.Event, state: FeaturesS
                 except (ValueError, RuntimeError):  # one bad frame must not end the stream
                     log.exception("message failed", extra={"stream": cfg.stream, "seq": delivery.msg.seq})
                 next_credit = 0.0  # grant the next frame at once
-            for key, out in state.replay.due():  # kept already: published again, not recorded again
-                bus.publish(key, out)
+            for replay in state.replays:
+                for key, out in replay.due():  # kept already: published again, not recorded again
+                    bus.publish(key, out)
             for key, out in outputs:
                 bus.publish(key, out)
-                state.replay.record(key, out)
-            hold(bus, state.replay.active and not state.ba_finished)  # served on after its EOS while ba may resume
+                for replay in state.replays:
+                    replay.record(key, out)
+            # served on after its end of stream while a consumer may still resume and need what was kept
+            hold(bus, any(r.active and not r.finished for r in state.replays))
     finally:
         state.semantics.stop()
     return state

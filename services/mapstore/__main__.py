@@ -11,6 +11,7 @@ from services.common.service_main import service_main
 from services.common.streams import serve
 from services.mapstore.config import MapstoreSettings
 from services.mapstore.service import run
+from services.mapstore.sessions import unfinished
 
 
 def _body(bus, stop) -> None:
@@ -18,7 +19,8 @@ def _body(bus, stop) -> None:
     serve(cfg.stream, bus, stop,
           lambda stream, stream_bus, stream_stop: run(cfg.model_copy(update={"stream": stream}), stream_bus,
                                                       stream_stop).close(),
-          keep_finished=True)  # a finished camera's map still answers queries, until a new one needs its place
+          keep_finished=True,  # a finished camera's map still answers queries, until a new one needs its place
+          resume=lambda: unfinished(cfg.db_path))  # streams a killed mapstore left unfinished
 
 
 def main(argv: list[str] | None = None) -> int:

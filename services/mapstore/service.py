@@ -17,6 +17,7 @@ the mapstore takes (keyframes, codes, graphs, bases, EOS) is essential.
 from __future__ import annotations
 
 import logging
+import secrets
 import threading
 import time
 from pathlib import Path
@@ -44,7 +45,10 @@ PROGRESS_S = 0.15  # heartbeat of the progress reports (features forgets a consu
 
 
 def handle_keyframe(state: MapState, msg: Keyframe, cfg: MapstoreSettings) -> None:
-    """Commit and fuse a keyframe; without codes (they follow in a ``KeyframeCodes``) for geometry only."""
+    """Commit and fuse a keyframe; without codes (they follow in a ``KeyframeCodes``) for geometry only. A
+    keyframe already committed (sent again to a consumer that resumed) is left as it is."""
+    if msg.seq in state.map.contents or state.map.is_folded(msg.seq):
+        return
     state.add_keyframe(msg.seq, msg.t_ns, msg.image, msg.codes, msg.intrinsics, msg.pca_version, msg.realtime)
 
 
@@ -111,6 +115,7 @@ def finish_stream(state: MapState, msg: Eos, cfg: MapstoreSettings) -> list[tupl
                                      "keyframes_folded": state.map.folded_count, "late_codes": state.late_codes})
     if cfg.export_dir:
         export_state(state, Path(cfg.export_dir))
+    state.store.set_meta({"finished": "1"})  # nothing to resume after a restart
     count = state.keyframe_count()
     return [(keys.topic(msg.stream, keys.EOS), Eos(msg.stream, msg.seq, time.time_ns(), stage="mapstore", count=count))]
 
@@ -182,8 +187,9 @@ def _held_versions(state: MapState) -> set[int]:
 def progress_report(state: MapState, cfg: MapstoreSettings, consumer: str) -> tuple[str, Credit]:
     """The progress report: ``seq`` = the highest keyframe seq committed (features counts the keyframes it
     published above it as the mapstore's backlog)."""
-    return keys.topic(cfg.stream, keys.PROGRESS), Credit(cfg.stream, state.committed_seq(), time.time_ns(),
-                                                         consumer=consumer)
+    committed = state.committed_seq()  # committed is durable: the database is the mapstore's checkpoint
+    return keys.topic(cfg.stream, keys.PROGRESS), Credit(cfg.stream, committed, time.time_ns(), consumer=consumer,
+                                                         checkpoints=True, durable=committed)
 
 
 def _wanted_version(state: MapState, msg: Message) -> int | None:
@@ -201,7 +207,7 @@ def run(cfg: MapstoreSettings, bus: Bus, stop: threading.Event, state: MapState 
     inbox = bus.inbox({topic(keys.KEYFRAME): [Keyframe], topic(keys.CODES): [KeyframeCodes],
                        topic(keys.PCA): [PcaMessage], topic(keys.GRAPH): [Graph], topic(keys.EOS): [Eos]},
                       lossless=True, droppable=())  # every kind is essential: credit bounds the queue, not drops
-    consumer = f"mapstore-{bus.instance}"
+    consumer = f"mapstore-{bus.instance}.{secrets.token_hex(3)}"  # a new name per start: features sees a restart
     bus.subscribe(topic(keys.POSE), lambda d: state.pose_log.add(d.msg), [Poses])  # the closure follows rebinding
     bus.serve(keys.map_key(cfg.stream, "**"), lambda key, params, payload: queries.answer(state, cfg.stream, key, params, payload))
     bus.ready()

@@ -8,13 +8,16 @@ when a worker starts for another session, the previous session's database is mov
 it), and the new session starts an empty one. A restart within the same session reopens the same database."""
 from __future__ import annotations
 
+import glob
 import logging
 import os
+import re
 import sqlite3
 from contextlib import closing
 from pathlib import Path
 
 log = logging.getLogger(__name__)
+_NAME = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")  # a stream name (services.common.keys.check_name)
 UNNAMED = "unnamed"  # the label of a map written before sessions existed (no session in its meta table)
 
 
@@ -48,3 +51,24 @@ def archive_other_session(path: Path, session: str) -> Path | None:
     log.info("a new session starts an empty map; the previous session's map was kept aside", extra={
         "session": session, "previous_session": previous or UNNAMED, "archive": str(archive)})
     return archive
+
+
+def unfinished(db_path: str) -> list[tuple[str, str]]:
+    """(stream, session) of every map under the ``db_path`` template (``{stream}`` in it) whose stream has not
+    ended: a mapstore that restarts resumes them, whether or not their source is still there."""
+    if "{stream}" not in db_path:
+        return []
+    prefix, _, suffix = db_path.partition("{stream}")
+    found = []
+    for name in sorted(glob.glob(glob.escape(prefix) + "*" + glob.escape(suffix))):
+        stream, path = name[len(prefix):len(name) - len(suffix)], Path(name)
+        if not _NAME.match(stream):  # a moved-aside session's map (<stream>.<session>.db), or a stranger
+            continue
+        with closing(sqlite3.connect(f"file:{path}?mode=ro", uri=True)) as conn:
+            try:
+                meta = dict(conn.execute("SELECT key, value FROM meta WHERE key IN ('session', 'finished')"))
+            except sqlite3.OperationalError:
+                continue
+        if meta.get("session") and meta.get("finished") != "1":
+            found.append((stream, meta["session"]))
+    return found
