@@ -307,7 +307,8 @@ def test_over_zenoh_codes_on_their_key_and_progress_reports(tmp_path, unix_endpo
 
         def next_report(seq: int) -> Credit:
             while (got := reports.get(ACK_S)) is not None:
-                assert got.msg.consumer == f"mapstore-{mbus.instance}"
+                assert got.msg.consumer.startswith(f"mapstore-{mbus.instance}.")  # a new name per start
+                assert got.msg.checkpoints and got.msg.durable == got.msg.seq  # committed is durable
                 if got.msg.seq == seq:
                     return got.msg
                 assert got.msg.seq < seq  # reports only move forward
