@@ -116,3 +116,23 @@ def test_a_full_replay_buffer_gives_up_the_oldest_and_counts_them():
     assert replay.given_up == 2
     replay.on_progress(_progress("ba-b.2", -1, -1))  # resumed with no checkpoint at all
     assert [m.seq for _, m in replay.due()] == [2, 3, 4]
+
+
+def test_ingest_sends_a_restarted_features_the_frames_it_had_not_handled():
+    from services.common.schema import Frame
+    from services.ingest.resend import ResendBuffer
+
+    def frame(seq: int) -> Frame:
+        return Frame(STREAM, seq, seq, 2, 2, image=np.zeros((2, 2, 3), np.uint8))
+
+    resend = ResendBuffer()
+    resend.on_credit(Credit(STREAM, 5, 0, consumer="features-a.1", checkpoints=True, durable=1))
+    for seq in range(5):
+        resend.record(frame(seq))
+    resend.on_credit(Credit(STREAM, 7, 0, consumer="features-a.1", checkpoints=True, durable=3))
+    resend.on_credit(Credit(STREAM, 9, 0, consumer="ingest-x", checkpoints=True, durable=9))  # not features
+    resend.record(Eos(STREAM, 4, 0, stage="ingest", count=5))
+    assert resend.due() == []  # nobody restarted
+    resend.on_credit(Credit(STREAM, 3, 0, consumer="features-b.2", checkpoints=True, durable=-1))
+    assert [(type(m).__name__, m.seq) for m in resend.due()] == [("Frame", 4), ("Eos", 4)]  # after 3, once
+    assert resend.due() == []

@@ -12,6 +12,7 @@ latest without a selector), so a consumer that missed one (late join, restart, l
 from __future__ import annotations
 
 import logging
+import secrets
 import threading
 import time
 from collections import deque
@@ -54,6 +55,7 @@ class FeaturesState:
     last_keyframe_seq: int = -1
     last_frame: tuple[int, int, int] = (0, 0, 0)  # original (width, height, t_ns) of the latest frame
     frames_seen: int = 0
+    first_seq: int = -1  # the first frame this worker saw (> 0 after a restart: ingest sent again what it lost)
     realtime: bool = False  # the stream is paced in real time (from its frames)
     pending_eos: Eos | None = None  # ingest's EOS, held until every frame it announced has arrived
     eos_deadline: float = 0.0
@@ -115,7 +117,9 @@ def decode_image(msg: Frame) -> np.ndarray:
 def handle_frame(state: FeaturesState, msg: Frame, cfg: FeaturesSettings) -> Outputs:
     outputs = _frame(state, msg, cfg)
     state.frames_seen += 1
-    if state.pending_eos is not None and state.frames_seen + state.dropped >= state.pending_eos.count:
+    if state.first_seq < 0:
+        state.first_seq = msg.seq
+    if state.pending_eos is not None and _all_frames_in(state, state.pending_eos):
         outputs += _finish(state, state.pending_eos)
     return outputs
 
@@ -165,10 +169,16 @@ def handle_eos(state: FeaturesState, msg: Eos, cfg: FeaturesSettings) -> Outputs
             replay.finished = True
     if msg.stage != "ingest":
         return []
-    if state.frames_seen + state.dropped >= msg.count:  # frames the inbox dropped (real time) are not coming
+    if _all_frames_in(state, msg):  # frames the inbox dropped (real time) are not coming
         return _finish(state, msg)
     state.pending_eos, state.eos_deadline = msg, time.monotonic() + cfg.eos_wait_s
     return []
+
+
+def _all_frames_in(state: FeaturesState, eos: Eos) -> bool:
+    """Every frame ingest announced has arrived, counting from the first this worker saw (a features that
+    restarted mid-stream gets the frames its predecessor had not handled, not the whole stream)."""
+    return state.frames_seen + state.dropped >= eos.count - max(state.first_seq, 0)
 
 
 def overdue_eos(state: FeaturesState) -> Outputs:
@@ -203,6 +213,7 @@ def closing_outputs(state: FeaturesState) -> Outputs:
     eos = Eos(msg.stream, msg.seq, time.time_ns(), stage="features", count=state.published, reason=msg.reason,
               dropped=state.dropped, codes_skipped=state.semantics.skipped)
     state.frames_seen, state.published, state.closing = 0, 0, None  # a new stream may follow on the same key
+    state.first_seq = -1
     state.dropped = 0
     if state.inbox is not None:
         state.inbox.dropped_by_kind.clear()
@@ -283,12 +294,14 @@ def run(cfg: FeaturesSettings, bus: Bus, stop: threading.Event, state: FeaturesS
     bus.ready()
     log.info("features ready", extra={"stream": cfg.stream, "backbone": cfg.backbone})
     next_credit = 0.0
+    # a new name per start, so ingest sees a restart; what it handled went on to ba and the mapstore, which keep it
+    consumer = f"features-{bus.instance}.{secrets.token_hex(3)}"
     try:
         while not stop.is_set():
             now = time.monotonic()
             if now >= next_credit:  # credit doubles as a heartbeat, so ingest knows we are alive
                 bus.publish(topic(keys.CREDIT), Credit(cfg.stream, credit_limit(state, cfg, now), time.time_ns(),
-                                                       consumer=f"features-{bus.instance}"))
+                                                       consumer=consumer, checkpoints=True, durable=state.last_seq))
                 next_credit = now + CREDIT_PERIOD_S
             delivery = inbox.get(POLL_S)
             outputs = closing_outputs(state)

@@ -35,6 +35,9 @@ class IngestSettings(BaseSettings):
     """Rate of a file source in realtime mode (default: the file's own rate, else 10)."""
     credit_ttl_s: float = Field(5.0, gt=0)
     """A consumer that has granted no credit for this long no longer holds the stream back."""
+    hold_after_end_s: float = Field(60.0, ge=0)
+    """Lossless: after its end of stream the source stays announced until features has ended the stream too (at
+    most this long), so a features that restarts meanwhile still finds the stream and gets what it lost."""
     wait_for_consumer_s: float = Field(60.0, ge=0)
     """How long to wait for the first consumer's credit before reading the source (so the first frames of a
     file are not dropped while the pipeline connects); lossless mode then gives up with a clear error."""

@@ -14,6 +14,7 @@ from ..common.bus import Bus, Delivery
 from ..common.schema import Credit, Eos, Frame
 from .config import IngestSettings
 from .core.pacing import CreditLedger, Decision, IngestCounters, decide
+from .resend import ResendBuffer
 from .sources import BadFrame, Source, SourceFrame, open_source
 
 log = logging.getLogger(__name__)
@@ -42,6 +43,8 @@ class CreditGate:
 
     def __init__(self, ttl_s: float, session: str = ""):
         self.session = session
+        self.resend = ResendBuffer()  # lossless: what features has not handled, for a features that restarts
+        self.features_ended = threading.Event()
         self._ledger = CreditLedger(ttl_s)
         self._cond = threading.Condition()
         self.ever_granted = False
@@ -51,10 +54,16 @@ class CreditGate:
         assert isinstance(msg, Credit)
         if msg.session and self.session and msg.session != self.session:
             return
+        self.resend.on_credit(msg)
         with self._cond:
             self._ledger.grant(msg.consumer or "anonymous", msg.seq, time.monotonic())
             self.ever_granted = True
             self._cond.notify_all()
+
+    def on_eos(self, delivery: Delivery) -> None:
+        msg = delivery.msg
+        if msg.stage == "features" and (not msg.session or msg.session == self.session):
+            self.features_ended.set()
 
     def limit(self) -> int:
         with self._cond:
@@ -72,6 +81,7 @@ def run(cfg: IngestSettings, bus: Bus, stop: threading.Event, source: Source | N
     session = keys.new_session()  # a restarted source is a new session: never fused into the last one's world
     gate = CreditGate(cfg.credit_ttl_s, session)
     bus.subscribe(keys.topic(cfg.stream, keys.CREDIT), gate.on_credit, expect=[Credit])
+    bus.subscribe(keys.topic(cfg.stream, keys.EOS), gate.on_eos, expect=[Eos])
     bus.ready()
     token = bus.announce(cfg.stream, session)  # services that serve every stream start this session's workers on it
     try:
@@ -109,14 +119,17 @@ def _stream(cfg: IngestSettings, bus: Bus, stop: threading.Event, source: Source
             delay = started + counters.read / pace_fps - time.monotonic()
             if delay > 0:
                 stop.wait(delay)
-        if not _await_credit(gate, seq, lossless, cfg, stop):
+        if not _await_credit(bus, gate, seq, lossless, cfg, stop):
             reason = "stopped" if stop.is_set() else "error"
             break
         if decide(seq, gate.limit(), lossless) is Decision.DROP:
             counters.dropped += 1
             continue
         try:
-            bus.publish(frame_key, frame_message(cfg, seq, item, gate.session), drop_if_congested=not lossless)
+            frame = frame_message(cfg, seq, item, gate.session)
+            bus.publish(frame_key, frame, drop_if_congested=not lossless)
+            if lossless:
+                gate.resend.record(frame)
         except ValueError as exc:
             counters.corrupt += 1
             log.warning("could not encode frame", extra={"stream": cfg.stream, "seq": seq, "error": str(exc)})
@@ -125,10 +138,32 @@ def _stream(cfg: IngestSettings, bus: Bus, stop: threading.Event, source: Source
         if cfg.max_frames and counters.sent >= cfg.max_frames:
             break
 
-    bus.publish(keys.topic(cfg.stream, keys.EOS), Eos(cfg.stream, seq, time.time_ns(), stage="ingest", count=counters.sent,
-                                                      reason=reason, dropped=counters.dropped, session=gate.session))
+    eos = Eos(cfg.stream, seq, time.time_ns(), stage="ingest", count=counters.sent, reason=reason,
+              dropped=counters.dropped, session=gate.session)
+    bus.publish(keys.topic(cfg.stream, keys.EOS), eos)
     log.info("end of stream", extra={"stream": cfg.stream, "reason": reason, **counters.__dict__})
+    if lossless and reason == "end":
+        gate.resend.record(eos)
+        _hold_until_taken(cfg, bus, stop, gate)
     return counters
+
+
+def _hold_until_taken(cfg: IngestSettings, bus: Bus, stop: threading.Event, gate: CreditGate) -> None:
+    """Lossless: stay announced until features has ended the stream too (or ``hold_after_end_s``), sending again
+    what a features that restarted meanwhile has not handled."""
+    deadline = time.monotonic() + cfg.hold_after_end_s
+    while not stop.is_set() and not gate.features_ended.is_set() and time.monotonic() < deadline:
+        _resend(bus, cfg, gate)
+        gate.features_ended.wait(CREDIT_POLL_S)
+
+
+def _resend(bus: Bus, cfg: IngestSettings, gate: CreditGate) -> None:
+    again = gate.resend.due()
+    if again:
+        log.info("features restarted: sending again what it had not handled", extra={
+            "stream": cfg.stream, "from_seq": again[0].seq, "messages": len(again)})
+    for msg in again:
+        bus.publish(keys.topic(cfg.stream, keys.FRAME if isinstance(msg, Frame) else keys.EOS), msg)
 
 
 def _await_first_consumer(gate: CreditGate, timeout_s: float, stop: threading.Event) -> bool:
@@ -142,7 +177,8 @@ def _await_first_consumer(gate: CreditGate, timeout_s: float, stop: threading.Ev
     return False
 
 
-def _await_credit(gate: CreditGate, seq: int, lossless: bool, cfg: IngestSettings, stop: threading.Event) -> bool:
+def _await_credit(bus: Bus, gate: CreditGate, seq: int, lossless: bool, cfg: IngestSettings,
+                  stop: threading.Event) -> bool:
     """Lossless: block until credit covers ``seq`` (False if stopped or no consumer ever appeared)."""
     if not lossless:
         return True
@@ -150,6 +186,7 @@ def _await_credit(gate: CreditGate, seq: int, lossless: bool, cfg: IngestSetting
     while not gate.wait_for(seq, CREDIT_POLL_S):
         if stop.is_set():
             return False
+        _resend(bus, cfg, gate)  # a features that restarted waits for the frames it lost
         waited += CREDIT_POLL_S
         if not gate.ever_granted and waited > cfg.wait_for_consumer_s:
             log.error(

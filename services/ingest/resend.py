@@ -1,0 +1,67 @@
+"""What ingest sent that features has not taken yet, sent again when a features instance restarts.
+
+features reports, with its credit, the highest frame seq it has handled (``durable``: what it handled went on to
+ba and the mapstore, which keep it; a features process keeps nothing itself). A lossless source keeps the frames
+it sent after that point — at most the credit window plus what features may be ahead of ba, a few dozen — and its
+end of stream. When a features consumer it has not heard from reports after another one did (a features killed
+and restarted: its worker has a new name per start), the source publishes them again in order, and it keeps its
+stream announced after its own end of stream until features has sent its end of stream, so a features that
+restarts after the last frame still finds the stream and gets what it missed."""
+from __future__ import annotations
+
+import threading
+from collections import deque
+
+from ..common.schema import Credit, Eos, Frame
+
+PREFIX = "features-"
+
+
+class ResendBuffer:
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._frames: deque[Frame] = deque()
+        self._eos: Eos | None = None
+        self._seen: set[str] = set()
+        self._pending = False
+        self.durable = -1
+        self.resent = 0
+
+    def on_credit(self, msg: Credit) -> None:
+        """A credit message (Zenoh thread)."""
+        if not msg.consumer.startswith(PREFIX) or not msg.checkpoints:
+            return
+        with self._lock:
+            if msg.consumer not in self._seen:
+                if self._seen:  # another instance came before: this one restarted and lost what was in flight
+                    self._pending = True
+                    self._seen.clear()
+                self._seen.add(msg.consumer)
+            # what any features instance handled went on downstream: a restarted one needs only what came after
+            self.durable = max(self.durable, msg.durable)
+            self._trim()
+
+    def record(self, msg: Frame | Eos) -> None:
+        """A frame or the end of stream this source published (loop thread)."""
+        with self._lock:
+            if isinstance(msg, Eos):
+                self._eos = msg
+                return
+            self._frames.append(msg)
+            self._trim()
+
+    def _trim(self) -> None:
+        while self._frames and self._frames[0].seq <= self.durable:
+            self._frames.popleft()
+
+    def due(self) -> list[Frame | Eos]:
+        """What to publish again now (loop thread): after a features restart, every frame it has not handled."""
+        with self._lock:
+            if not self._pending:
+                return []
+            self._pending = False
+            out: list[Frame | Eos] = [f for f in self._frames if f.seq > self.durable]
+            if self._eos is not None:
+                out.append(self._eos)
+        self.resent += len(out)
+        return out
