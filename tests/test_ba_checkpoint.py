@@ -136,3 +136,7 @@ def test_ingest_sends_a_restarted_features_the_frames_it_had_not_handled():
     resend.on_credit(Credit(STREAM, 3, 0, consumer="features-b.2", checkpoints=True, durable=-1))
     assert [(type(m).__name__, m.seq) for m in resend.due()] == [("Frame", 4), ("Eos", 4)]  # after 3, once
     assert resend.due() == []
+    resend.on_credit(Credit(STREAM, 9, 0, consumer="features-b.2", checkpoints=True, durable=4))
+    resend.on_credit(Credit(STREAM, 3, 0, consumer="features-c.3", checkpoints=True, durable=-1))
+    # everything was handled: the newest frame again, so the new instance learns where the stream is
+    assert [(type(m).__name__, m.seq) for m in resend.due()] == [("Frame", 4), ("Eos", 4)]

@@ -22,6 +22,7 @@ class ResendBuffer:
         self._lock = threading.Lock()
         self._frames: deque[Frame] = deque()
         self._eos: Eos | None = None
+        self._last: Frame | None = None  # the newest frame sent
         self._seen: set[str] = set()
         self._pending = False
         self.durable = -1
@@ -48,6 +49,7 @@ class ResendBuffer:
                 self._eos = msg
                 return
             self._frames.append(msg)
+            self._last = msg
             self._trim()
 
     def _trim(self) -> None:
@@ -61,6 +63,10 @@ class ResendBuffer:
                 return []
             self._pending = False
             out: list[Frame | Eos] = [f for f in self._frames if f.seq > self.durable]
+            if not out and self._last is not None:
+                # its predecessor had handled everything: the newest frame again tells the new one where the
+                # stream is (its credit counts from the frames it has seen; the repeat is not taken twice downstream)
+                out.append(self._last)
             if self._eos is not None:
                 out.append(self._eos)
         self.resent += len(out)
