@@ -164,8 +164,9 @@ def run_once(out: Path, spec: str, dino: bool, victim: str | None, kill_at: floa
                     killed_at = time.monotonic()
                     time.sleep(delay)
                     dep.start(victim)
-                with seen.lock:
-                    done = (killed_at is not None or not victim) and _last(seen) in seen.ended
+                with seen.lock:  # a killed publisher's stream is done when the session it restarted ends
+                    done = (killed_at is not None or not victim) and _last(seen) in seen.ended and \
+                        (victim != "publisher" or len(seen.keyframes) >= 2)
                 if done:
                     break
                 time.sleep(0.2)
@@ -257,6 +258,7 @@ def main() -> int:
     parser.add_argument("--out", type=Path, default=Path("/tmp/kmvipe-chaos"))
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # a stopped bench stops its deployment (finally)
     if not KMVIPE.is_file():
         raise SystemExit(f"the kmvipe command is not installed beside {sys.executable} (make install)")
     spec = f"synth:frames={args.frames},width=256,height=192"

@@ -221,6 +221,7 @@ def main() -> int:
     parser.add_argument("--cache", type=Path, default=Path("/tmp"))
     parser.add_argument("--json", type=Path, help="also write every run's measurements here")
     args = parser.parse_args()
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # a stopped bench stops its deployment (finally)
     if not KMVIPE.is_file():
         raise SystemExit(f"the kmvipe command is not installed beside {sys.executable} (make install)")
     folder = render(args.frames, args.fps, args.width, args.height, args.cache)

@@ -5,8 +5,6 @@ every frame of the lossless stream is posed, checked over HTTP through the gatew
 router, the synthetic world's oracle backbone in place of DINO."""
 from __future__ import annotations
 
-import json
-import os
 import sqlite3
 import subprocess
 import threading
@@ -24,7 +22,7 @@ from services.evaluation.trajectory_io import Trajectory
 from services.ingest.sources import open_source
 from services.runner.children import free_tcp_endpoint
 from tests.conftest import wait_until
-from tests.helpers.processes import start, stop
+from tests.helpers.processes import client_env, start, start_services, stop
 
 FRAMES = 60
 SPEC = f"synth:frames={FRAMES},width=256,height=192"
@@ -37,14 +35,10 @@ SPEC = f"synth:frames={FRAMES},width=256,height=192"
 def test_a_service_killed_mid_stream_loses_no_pose_and_keeps_one_world_frame(case, tmp_path, tcp_endpoint):
     victim = case.split("-")[0]
     port = int(free_tcp_endpoint().rsplit(":", 1)[1])
-    base = {k: v for k, v in os.environ.items() if not k.startswith("KMVIPE_")}
-    env = {**base, "KMVIPE_BUS_MODE": "client", "KMVIPE_BUS_CONNECT": json.dumps([tcp_endpoint]),
-           "KMVIPE_BUS_LISTEN": "[]", "KMVIPE_FEATURES_BACKBONE": "synth-oracle",
-           "KMVIPE_FEATURES_ORACLE_SOURCE": SPEC, "KMVIPE_MAPSTORE_DB_PATH": str(tmp_path / "maps" / "{stream}.db"),
-           "KMVIPE_BA_CHECKPOINT_DIR": str(tmp_path / "ba"), "KMVIPE_BA_CHECKPOINT_PERIOD_S": "0.5",
-           # slow mapping down a little so the kill lands mid-stream on a fast machine too
-           "KMVIPE_BA_MAPPING_MIN_SECONDS": "0.3",
-           "KMVIPE_QUERY_PORT": str(port), "KMVIPE_QUERY_HOST": "127.0.0.1"}
+    env = client_env(tcp_endpoint, SPEC, tmp_path / "maps", KMVIPE_BA_CHECKPOINT_DIR=str(tmp_path / "ba"),
+                     KMVIPE_BA_CHECKPOINT_PERIOD_S="0.5", KMVIPE_QUERY_PORT=str(port), KMVIPE_QUERY_HOST="127.0.0.1",
+                     # slow mapping down a little so the kill lands mid-stream on a fast machine too
+                     KMVIPE_BA_MAPPING_MIN_SECONDS="0.3")
     if case.endswith("after-its-source-ended"):  # ingest may run far ahead of ba: it ends (its token goes) first
         env["KMVIPE_FEATURES_DOWNSTREAM_FRAMES"] = "1000"
         env["KMVIPE_BA_MAPPING_MIN_SECONDS"] = "1.0"  # and ba far behind it
@@ -74,11 +68,8 @@ def test_a_service_killed_mid_stream_loses_no_pose_and_keeps_one_world_frame(cas
         bus.subscribe(keys.topic("cam1", keys.EOS), on_eos, [Eos])
         bus.subscribe(keys.topic("cam1", keys.KEYFRAME), lambda d: keyframes_sent.add(d.msg.seq), [Keyframe])
         try:
-            services = {name: start(["service", name], env, logs / f"{name}.log")
-                        for name in ("features", "ba", "mapstore", "query_api")}
+            services = start_services(("features", "ba", "mapstore", "query_api"), env, logs, bus)
             procs.extend(services.values())
-            wait_until(lambda: {"features", "ba", "mapstore", "query_api"} <= set(bus.alive(timeout=0.5)), 120,
-                       "services ready")
             publisher = start(["publish", SPEC, "--stream", "cam1", "--pacing", "lossless", "--connect",
                                tcp_endpoint], env, logs / "publish.log")
             procs.append(publisher)

@@ -3,8 +3,6 @@ every stream a source announces, each with its own state and map; a source that 
 others up. Real processes on a loopback router, the synthetic world's oracle backbone in place of DINO."""
 from __future__ import annotations
 
-import json
-import os
 import sqlite3
 import subprocess
 import threading
@@ -17,7 +15,7 @@ from services.common.bus import Bus
 from services.common.config import BusSettings
 from services.common.schema import Eos, Poses
 from tests.conftest import wait_until
-from tests.helpers.processes import start, stop
+from tests.helpers.processes import client_env, start, start_services, stop
 
 SPEC = "synth:frames=24,width=256,height=192"
 STREAMS = ("cam1", "cam2", "cam3")
@@ -26,11 +24,7 @@ STREAMS = ("cam1", "cam2", "cam3")
 @pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_three_cameras_each_get_every_frame_posed_and_their_own_map(tmp_path, tcp_endpoint):
-    base = {k: v for k, v in os.environ.items() if not k.startswith("KMVIPE_")}
-    env = {**base, "KMVIPE_BUS_MODE": "client", "KMVIPE_BUS_CONNECT": json.dumps([tcp_endpoint]),
-           "KMVIPE_BUS_LISTEN": "[]", "KMVIPE_FEATURES_BACKBONE": "synth-oracle",
-           "KMVIPE_FEATURES_ORACLE_SOURCE": SPEC, "KMVIPE_MAPSTORE_DB_PATH": str(tmp_path / "maps" / "{stream}.db"),
-           "KMVIPE_STREAMS_IDLE_S": "5"}
+    env = client_env(tcp_endpoint, SPEC, tmp_path / "maps", KMVIPE_STREAMS_IDLE_S="5")
     poses: dict[str, set[int]] = {s: set() for s in STREAMS}
     ended: dict[str, float] = {}
     lock = threading.Lock()
@@ -49,9 +43,7 @@ def test_three_cameras_each_get_every_frame_posed_and_their_own_map(tmp_path, tc
         bus.subscribe(keys.topic("*", keys.POSE), on_pose, [Poses])
         bus.subscribe(keys.topic("*", keys.EOS), on_eos, [Eos])
         try:
-            for name in ("features", "ba", "mapstore"):
-                procs.append(start(["service", name], env, tmp_path / f"{name}.log"))
-            wait_until(lambda: {"features", "ba", "mapstore"} <= set(bus.alive(timeout=0.5)), 120, "services ready")
+            procs.extend(start_services(("features", "ba", "mapstore"), env, tmp_path, bus).values())
             # a fourth source announces itself and sends garbage on its frame key
             garbage = bus.announce("junk")
             for _ in range(50):

@@ -4,7 +4,6 @@ the host starts a fresh worker for a new session, the mapstore moves the previou
 and through real processes, a restarted publisher gets a new session whose map is its own."""
 from __future__ import annotations
 
-import json
 import os
 import sqlite3
 import subprocess
@@ -24,7 +23,7 @@ from services.common.streams import StreamHost, StreamScope
 from services.mapstore.sessions import archive_other_session, recorded_session
 from services.mapstore.store import MapStore
 from tests.conftest import wait_until
-from tests.helpers.processes import KMVIPE, start, stop
+from tests.helpers.processes import KMVIPE, client_env, start, start_services, stop
 
 
 
@@ -137,10 +136,7 @@ def _map_rows(path: Path) -> tuple[list, list]:
 @pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_a_restarted_publisher_opens_a_new_session_and_the_old_sessions_map_is_unchanged(tmp_path, tcp_endpoint):
-    base = {k: v for k, v in os.environ.items() if not k.startswith("KMVIPE_")}
-    env = {**base, "KMVIPE_BUS_MODE": "client", "KMVIPE_BUS_CONNECT": json.dumps([tcp_endpoint]),
-           "KMVIPE_BUS_LISTEN": "[]", "KMVIPE_FEATURES_BACKBONE": "synth-oracle",
-           "KMVIPE_FEATURES_ORACLE_SOURCE": SPEC, "KMVIPE_MAPSTORE_DB_PATH": str(tmp_path / "maps" / "{stream}.db")}
+    env = client_env(tcp_endpoint, SPEC, tmp_path / "maps")
     poses: dict[str, dict[int, np.ndarray]] = {}
     ended: set[str] = set()
     lock = threading.Lock()
@@ -161,9 +157,7 @@ def test_a_restarted_publisher_opens_a_new_session_and_the_old_sessions_map_is_u
         bus.subscribe(keys.topic("cam1", keys.POSE), on_pose, [Poses])
         bus.subscribe(keys.topic("cam1", keys.EOS), on_eos, [Eos])
         try:
-            for name in ("features", "ba", "mapstore"):
-                procs.append(start(["service", name], env, tmp_path / f"{name}.log"))
-            wait_until(lambda: {"features", "ba", "mapstore"} <= set(bus.alive(timeout=0.5)), 120, "services ready")
+            procs.extend(start_services(("features", "ba", "mapstore"), env, tmp_path, bus).values())
             # the first publisher dies mid-stream (kill -9: no end of stream, its token lingers for a while)
             first = start(["publish", SPEC, "--stream", "cam1", "--pacing", "lossless", "--connect", tcp_endpoint],
                            env, tmp_path / "publish-1.log")

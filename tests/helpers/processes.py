@@ -1,6 +1,8 @@
 """The deployed processes in tests: ``kmvipe`` commands started as compose starts them, stopped as docker stop does."""
 from __future__ import annotations
 
+import json
+import os
 import signal
 import subprocess
 import sys
@@ -26,3 +28,26 @@ def stop(procs: list[subprocess.Popen], grace_s: float = 30.0) -> None:
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
+
+
+def client_env(endpoint: str, spec: str, maps: Path, **settings: str) -> dict[str, str]:
+    """The services' environment in the compose topology on a loopback router: client mode, the synthetic world's
+    oracle backbone for ``spec`` in place of DINO, one map database per stream under ``maps``, plus ``settings``
+    (``KMVIPE_...`` names); nothing inherited from the caller's own ``KMVIPE_`` variables."""
+    base = {k: v for k, v in os.environ.items() if not k.startswith("KMVIPE_")}
+    return {**base, "KMVIPE_BUS_MODE": "client", "KMVIPE_BUS_CONNECT": json.dumps([endpoint]),
+            "KMVIPE_BUS_LISTEN": "[]", "KMVIPE_FEATURES_BACKBONE": "synth-oracle",
+            "KMVIPE_FEATURES_ORACLE_SOURCE": spec, "KMVIPE_MAPSTORE_DB_PATH": str(maps / "{stream}.db"), **settings}
+
+
+def start_services(names: tuple[str, ...], env: dict[str, str], logs: Path, bus) -> dict[str, subprocess.Popen]:
+    """``kmvipe service NAME`` for each name, logging to ``logs/NAME.log``; returns once all are alive on ``bus``."""
+    from tests.conftest import wait_until
+
+    procs = {name: start(["service", name], env, logs / f"{name}.log") for name in names}
+    try:
+        wait_until(lambda: set(names) <= set(bus.alive(timeout=0.5)), 120, "services ready")
+    except BaseException:
+        stop(list(procs.values()))
+        raise
+    return procs
