@@ -121,13 +121,19 @@ class Deployment:
                 proc.kill()
                 proc.wait()
 
-    def trajectory(self) -> dict[int, np.ndarray]:
+    def trajectory(self, wait_s: float = 60.0) -> dict[int, np.ndarray]:
+        """The gateway's trajectory of the stream (waiting up to ``wait_s`` for a restarted gateway to answer)."""
         import httpx
 
-        try:
-            answer = httpx.get(f"http://127.0.0.1:{self.port}/v1/streams/{STREAM}/trajectory", timeout=15)
-        except httpx.HTTPError:
-            return {}
+        deadline = time.monotonic() + wait_s
+        while True:
+            try:
+                answer = httpx.get(f"http://127.0.0.1:{self.port}/v1/streams/{STREAM}/trajectory", timeout=15)
+                break
+            except httpx.HTTPError:
+                if time.monotonic() > deadline:
+                    return {}
+                time.sleep(0.5)
         if answer.status_code != 200:
             return {}
         return {f["seq"]: np.array(f["world_from_cam"]) for f in answer.json()["frames"]}
