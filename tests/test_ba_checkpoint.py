@@ -25,12 +25,18 @@ def _final_poses(outputs) -> Poses:
     return [m for _, m in outputs if isinstance(m, Poses)][-1]
 
 
-def test_a_state_restored_from_its_checkpoint_continues_exactly_like_the_uninterrupted_one(tmp_path):
+def _state_after(handled: int, rendered: int, width: int):
+    """(settings, every message of a synthetic stream, a ba state that has handled the first ``handled``)."""
     cfg = _settings()
-    _, msgs = synth_stream(n_frames=40, rendered=25, every=4, stream=STREAM, width=256)
-    uninterrupted = service.build_state(cfg)
-    for msg in msgs[:14]:
-        service.handle(uninterrupted, msg, cfg)
+    _, msgs = synth_stream(n_frames=40, rendered=rendered, every=4, stream=STREAM, width=width)
+    state = service.build_state(cfg)
+    for msg in msgs[:handled]:
+        service.handle(state, msg, cfg)
+    return cfg, msgs, state
+
+
+def test_a_state_restored_from_its_checkpoint_continues_exactly_like_the_uninterrupted_one(tmp_path):
+    cfg, msgs, uninterrupted = _state_after(14, rendered=25, width=256)
     saver = Checkpointer(str(tmp_path), STREAM, "s1", period_s=0.0)
     assert saver.due()
     saver.save(uninterrupted)
@@ -51,11 +57,7 @@ def test_a_state_restored_from_its_checkpoint_continues_exactly_like_the_uninter
 
 
 def test_a_kill_while_writing_leaves_the_previous_checkpoint(tmp_path):
-    cfg = _settings()
-    _, msgs = synth_stream(n_frames=40, rendered=9, every=4, stream=STREAM, width=128)
-    state = service.build_state(cfg)
-    for msg in msgs[:6]:
-        service.handle(state, msg, cfg)
+    _, _, state = _state_after(6, rendered=9, width=128)
     saver = Checkpointer(str(tmp_path), STREAM, "s1", period_s=0.0)
     saver.save(state)
     # a process killed mid-write leaves a partial temporary file; the checkpoint itself is the last whole one

@@ -23,7 +23,6 @@ A version no ``pca`` message brought (missed while down, or lost) is asked of fe
 from __future__ import annotations
 
 import logging
-import secrets
 import threading
 import time
 from collections import Counter
@@ -38,6 +37,7 @@ from services.common.pca_codes import code_map, convert_codes
 from services.common.pca_fetch import BasisFetch
 from services.common.bus import Delivery, Inbox
 from services.common.lifecycle import nice_this_thread
+from services.common.restarts import Restarts, consumer_name
 from services.common.streams import hold, session_of
 from services.common.schema import (Credit, Eos, FrameLite, Graph, Intrinsics, Keyframe, KeyframeCodes, Message,
                                     PcaBasis, Poses)
@@ -272,7 +272,7 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
     session = session_of(bus)  # None outside a host (a pinned service): no session, no checkpoint to resume
     checkpoints = Checkpointer(cfg.checkpoint_dir if session else "", cfg.stream, session, cfg.checkpoint_period_s)
     resumed_at = _resume(state, checkpoints, cfg)
-    consumer = f"ba-{bus.instance}.{secrets.token_hex(3)}"  # a new name per start: features sees a resumed ba
+    consumer = consumer_name("ba", bus.instance)  # a new name per start: features sees a resumed ba
     topic = lambda name: keys.topic(cfg.stream, name)  # noqa: E731
     mapping = bus.inbox({topic(keys.PCA): [PcaBasis], topic(keys.CODES): [KeyframeCodes], topic(keys.EOS): [Eos]},
                         maxsize=cfg.inbox_size, droppable=(FrameLite,))
@@ -360,15 +360,11 @@ def _seen_before(state: BaState, msg: Keyframe | FrameLite, resumed_at: int) -> 
 
 def _watch_mapstores(bus, key: str) -> threading.Event:
     """Set whenever a mapstore consumer appears after another one did (a mapstore that restarted)."""
-    seen: set[str] = set()
-    restarted = threading.Event()
+    mapstores, restarted = Restarts("mapstore-"), threading.Event()
 
     def on_progress(delivery: Delivery) -> None:
-        consumer = delivery.msg.consumer
-        if consumer.startswith("mapstore-") and consumer not in seen:
-            if seen:
-                restarted.set()
-            seen.add(consumer)
+        if mapstores.replaced_by(delivery.msg.consumer):
+            restarted.set()
 
     bus.subscribe(key, on_progress, [Credit])
     return restarted

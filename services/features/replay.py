@@ -20,6 +20,7 @@ import threading
 from collections import deque
 
 from ..common import keys
+from ..common.restarts import Restarts
 from ..common.schema import Credit, Eos, FrameLite, Keyframe, KeyframeCodes, Message
 
 log = logging.getLogger(__name__)
@@ -36,7 +37,7 @@ class ReplayBuffer:
         self._frames: deque[tuple[str, Message]] = deque()  # kinds (and the EOS), in send order
         self._codes: deque[tuple[str, Message]] = deque(maxlen=max_codes)
         self._lock = threading.Lock()
-        self._seen: set[str] = set()  # consumers heard from
+        self._restarts = Restarts(prefix)
         self._resume_after: int | None = None  # a new instance resumed after this seq: replay on the loop
         self.active = False  # such a consumer keeps durable state (a checkpoint, a database)
         self.finished = False  # it sent its end of stream: nothing more to keep
@@ -49,16 +50,13 @@ class ReplayBuffer:
         resumed), for the caller to forget."""
         if not msg.consumer.startswith(self.prefix) or not msg.checkpoints:
             return []
+        replaced = self._restarts.replaced_by(msg.consumer)
         with self._lock:
             self.active = True
-            replaced: list[str] = []
-            if msg.consumer not in self._seen:
-                if self._seen:  # another instance came before: this one resumed from its durable state
-                    self._resume_after = msg.seq
-                    replaced = sorted(self._seen)
-                    self._seen.clear()
-                self._seen.add(msg.consumer)
-            self.durable = max(self.durable, msg.durable) if not replaced else msg.durable
+            if replaced:  # it resumed from its durable state: what came after it is due again
+                self._resume_after, self.durable = msg.seq, msg.durable
+            else:
+                self.durable = max(self.durable, msg.durable)
             return replaced
 
     def record(self, key: str, msg: Message) -> None:
@@ -91,9 +89,3 @@ class ReplayBuffer:
         log.info("a consumer resumed from its durable state: sending again what came after it", extra={
             "consumer": self.prefix.rstrip("-"), "after_seq": after, "messages": len(out), "given_up": self.given_up})
         return out
-
-    def clear(self) -> None:
-        with self._lock:
-            self._frames.clear()
-            self._codes.clear()
-            self.durable = -1

@@ -12,7 +12,6 @@ latest without a selector), so a consumer that missed one (late join, restart, l
 from __future__ import annotations
 
 import logging
-import secrets
 import threading
 import time
 from collections import deque
@@ -29,6 +28,7 @@ from ..common.device import resolve_device
 from ..common.models.loaders import load_backbone, load_depth_model
 from ..common.models.store import ModelStore
 from ..common.schema import Credit, Eos, Frame, FrameLite, Intrinsics, Keyframe, KeyframeCodes, Message, PcaBasis
+from ..common.restarts import consumer_name
 from ..common.streams import hold
 from .replay import ReplayBuffer
 from .config import FeaturesSettings
@@ -295,7 +295,7 @@ def run(cfg: FeaturesSettings, bus: Bus, stop: threading.Event, state: FeaturesS
     log.info("features ready", extra={"stream": cfg.stream, "backbone": cfg.backbone})
     next_credit = 0.0
     # a new name per start, so ingest sees a restart; what it handled went on to ba and the mapstore, which keep it
-    consumer = f"features-{bus.instance}.{secrets.token_hex(3)}"
+    consumer = consumer_name("features", bus.instance)
     try:
         while not stop.is_set():
             now = time.monotonic()

@@ -12,6 +12,7 @@ from __future__ import annotations
 import threading
 from collections import deque
 
+from ..common.restarts import Restarts
 from ..common.schema import Credit, Eos, Frame
 
 PREFIX = "features-"
@@ -23,21 +24,17 @@ class ResendBuffer:
         self._frames: deque[Frame] = deque()
         self._eos: Eos | None = None
         self._last: Frame | None = None  # the newest frame sent
-        self._seen: set[str] = set()
+        self._restarts = Restarts(PREFIX)
         self._pending = False
         self.durable = -1
-        self.resent = 0
 
     def on_credit(self, msg: Credit) -> None:
         """A credit message (Zenoh thread)."""
         if not msg.consumer.startswith(PREFIX) or not msg.checkpoints:
             return
+        restarted = bool(self._restarts.replaced_by(msg.consumer))  # it lost what was in flight to its predecessor
         with self._lock:
-            if msg.consumer not in self._seen:
-                if self._seen:  # another instance came before: this one restarted and lost what was in flight
-                    self._pending = True
-                    self._seen.clear()
-                self._seen.add(msg.consumer)
+            self._pending = self._pending or restarted
             # what any features instance handled went on downstream: a restarted one needs only what came after
             self.durable = max(self.durable, msg.durable)
             self._trim()
@@ -69,5 +66,4 @@ class ResendBuffer:
                 out.append(self._last)
             if self._eos is not None:
                 out.append(self._eos)
-        self.resent += len(out)
         return out

@@ -17,7 +17,6 @@ the mapstore takes (keyframes, codes, graphs, bases, EOS) is essential.
 from __future__ import annotations
 
 import logging
-import secrets
 import threading
 import time
 from pathlib import Path
@@ -28,6 +27,7 @@ from services.common import keys
 from services.common.bus import Bus
 from services.common.errors import DecodeError, ServiceTimeout
 from services.common.pca_fetch import BasisFetch
+from services.common.restarts import consumer_name
 from services.common.streams import session_of
 from services.common.schema import (Credit, Eos, Graph, Keyframe, KeyframeCodes, Message, PcaBasis as PcaMessage,
                                     Poses, decode)
@@ -207,7 +207,7 @@ def run(cfg: MapstoreSettings, bus: Bus, stop: threading.Event, state: MapState 
     inbox = bus.inbox({topic(keys.KEYFRAME): [Keyframe], topic(keys.CODES): [KeyframeCodes],
                        topic(keys.PCA): [PcaMessage], topic(keys.GRAPH): [Graph], topic(keys.EOS): [Eos]},
                       lossless=True, droppable=())  # every kind is essential: credit bounds the queue, not drops
-    consumer = f"mapstore-{bus.instance}.{secrets.token_hex(3)}"  # a new name per start: features sees a restart
+    consumer = consumer_name("mapstore", bus.instance)  # a new name per start: features sees a restart
     bus.subscribe(topic(keys.POSE), lambda d: state.pose_log.add(d.msg), [Poses])  # the closure follows rebinding
     bus.serve(keys.map_key(cfg.stream, "**"), lambda key, params, payload: queries.answer(state, cfg.stream, key, params, payload))
     bus.ready()

@@ -62,7 +62,7 @@ MIGRATIONS: list[str] = [
     CREATE TABLE folded (kf_id INTEGER PRIMARY KEY, mode INTEGER NOT NULL);
     """,
     # 5: every frame's latest pose (the trajectory ba publishes; mapping's revisions win over tracking's poses),
-    # so the trajectory outlives a restarted gateway
+    # so the trajectory outlives a restarted gateway; 16 little-endian float64 each (a whole stream is read at once)
     """
     CREATE TABLE frame_poses (seq INTEGER PRIMARY KEY, t_ns INTEGER NOT NULL, world_from_cam BLOB NOT NULL,
         mapped INTEGER NOT NULL DEFAULT 0);
@@ -223,7 +223,7 @@ class MapStore:
         self._write([("INSERT INTO frame_poses (seq, t_ns, world_from_cam, mapped) VALUES (?, ?, ?, ?) "
                       "ON CONFLICT(seq) DO UPDATE SET t_ns = excluded.t_ns, world_from_cam = excluded.world_from_cam, "
                       "mapped = excluded.mapped WHERE excluded.mapped >= frame_poses.mapped",
-                      (int(s), int(t), to_blob(np.asarray(p, np.float64)), int(m))) for s, t, p, m in rows])
+                      (int(s), int(t), np.asarray(p, "<f8").tobytes(), int(m))) for s, t, p, m in rows])
 
     def frame_poses(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Every stored frame pose, by seq: (N,) seqs, (N,) stamps (ns), (N, 4, 4) world_from_cam."""
@@ -232,7 +232,7 @@ class MapStore:
         if not rows:
             return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 4, 4))
         return (np.array([r[0] for r in rows], np.int64), np.array([r[1] for r in rows], np.int64),
-                np.stack([from_blob(r[2]).reshape(4, 4) for r in rows]))
+                np.frombuffer(b"".join(r[2] for r in rows), "<f8").reshape(-1, 4, 4).copy())
 
     def put_folded(self, modes: list[tuple[int, int]]) -> None:
         """Record folded keyframes: (kf_id, mode) with mode 2 = with codes, 1 = geometry only, 0 = nothing."""
