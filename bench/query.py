@@ -1,13 +1,18 @@
 """Query gateway benchmark: HTTP query latency (p50/p99) with a cached text embedding, over a 1M-point map.
 
     .venv/bin/python bench/query.py                        # 1M points, the real mapstore query code, 1 and 16 clients
+    .venv/bin/python bench/query.py --answer-cache off     # every request scored (no answer reused)
     .venv/bin/python bench/query.py --map ref --points 2e5  # the gateway's reference (brute-force) queryable
 
 One child process serves the map (``--map mapstore``: services.mapstore.queries on a prebuilt fused map —
 scoring index, top-k and region clustering exactly as the mapstore runs them; ``--map ref``:
 services.query_api.refmap) and the gateway (uvicorn + the oracle text encoder, so the text embedding is
 cached after the warm-up) on a loopback Zenoh bus. The parent sends ``POST /v1/streams/<s>/query`` with one
-text from 1 and 16 concurrent clients and reports p50/p99 of the wall-clock latency per request.
+text from 1 and 16 concurrent clients and reports p50/p99 of the wall-clock latency per request; before that,
+the same query straight on the bus (``zenoh``: the map's share) and, with ``--map mapstore``, in this process
+(``inproc``: services.mapstore.queries.query on the same map, no transport). The mapstore answers a repeated
+request on an unchanged map from its answer cache; ``--answer-cache off`` makes it score every request (the
+cost of a query on a map that changed since the last one). The load average is printed with the results.
 Map: N unique voxels (0.02 m) in a 4 × 4 × 2 m volume, one of ``--labels`` labels per 0.5 m block, PCA codes (K = 32) of
 oracle features (D = 768) with noise.
 """
@@ -16,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
+import os
 import sys
 import threading
 import time
@@ -75,10 +81,17 @@ class _MapState:
         n = len(xyz)
         fused = FusedVoxels(np.arange(n, dtype=np.int64), ijk, xyz.astype(np.float64), codes, rgb, np.ones(n), np.ones(n, np.int64))
         self.lock, self.map, self.bases, self.metric = threading.RLock(), _FusedMap(fused, MapParams()), {1: basis}, True
+        self.session = ""
         self._index = ScoringIndex(codes, basis, "cpu")
 
     def index(self):
         return self._index
+
+    def keyframe_count(self) -> int:
+        return 1
+
+    def without_codes_count(self) -> int:
+        return 0
 
 
 def serve(args, port_queue) -> None:
@@ -98,6 +111,8 @@ def serve(args, port_queue) -> None:
         from services.mapstore import queries
         from services.mapstore.core.scoring import PcaBasis
 
+        if args.answer_cache == "off":
+            queries.ANSWER_CACHE = 0
         state = _MapState(ijk, xyz, rgb, codes, PcaBasis(1, mean, comps, "oracle"))
         map_bus.serve(f"kmvipe/{STREAM}/map/**", lambda key, p, payload: queries.answer(state, STREAM, key, p, payload))
     else:
@@ -164,8 +179,33 @@ def run_direct(args, requests: int) -> np.ndarray:
     return np.array(out)
 
 
+def run_inproc(args, requests: int) -> np.ndarray:
+    """Latencies (s) of the same query as services.mapstore.queries.query in this process (no bus, no HTTP)."""
+    from services.common.schema import MapQuery
+    from services.mapstore import queries
+    from services.mapstore.core.scoring import PcaBasis
+
+    ijk, xyz, rgb, codes, mean, comps, vecs = build_map(args.points, args.labels)
+    state = _MapState(ijk, xyz, rgb, codes, PcaBasis(1, mean, comps, "oracle"))
+    vec = vecs[label_names(args.labels).index(args.text)][None]
+    saved = getattr(queries, "ANSWER_CACHE", 0)  # 0: a mapstore version without an answer cache
+    queries.ANSWER_CACHE = saved if args.answer_cache == "on" else 0
+    try:
+        out = []
+        for i in range(requests + 5):  # the first 5: warm-up (first touch of the index, answer cached)
+            t0 = time.perf_counter()
+            with state.lock:
+                queries.query(state, MapQuery(STREAM, i, time.time_ns(), vectors=vec, space="oracle", top_k=20,
+                                              max_regions=10))
+            out.append(time.perf_counter() - t0)
+    finally:
+        queries.ANSWER_CACHE = saved
+    return np.array(out[5:])
+
+
 def _row(args, route: str, clients: int, lat: np.ndarray, wall: float) -> dict:
-    return {"map": args.map, "labels": args.labels, "route": route, "points": args.points, "clients": clients, "requests": len(lat),
+    return {"map": args.map, "labels": args.labels, "text": args.text, "answer_cache": args.answer_cache,
+            "route": route, "points": args.points, "clients": clients, "requests": len(lat),
             "p50_ms": 1e3 * float(np.percentile(lat, 50)), "p99_ms": 1e3 * float(np.percentile(lat, 99)),
             "throughput_qps": len(lat) / wall}
 
@@ -179,6 +219,10 @@ def main() -> None:
     ap.add_argument("--text", default="chair")
     ap.add_argument("--labels", type=int, default=len(LABELS),
                     help="labels in the map (each covers about 1/labels of the points; 13: chair ≈ 7.7%%)")
+    ap.add_argument("--answer-cache", choices=["on", "off"], default="on",
+                    help="off: the mapstore scores every request (no answer reused on the unchanged map)")
+    ap.add_argument("--inproc", action=argparse.BooleanOptionalAction, default=True,
+                    help="also time the mapstore query in this process (--map mapstore only)")
     ap.add_argument("--zenoh-port", type=int, default=17650)
     ap.add_argument("--json", type=Path, help="also write the results here")
     args = ap.parse_args()
@@ -188,20 +232,29 @@ def main() -> None:
     child = ctx.Process(target=serve, args=(args, ports), daemon=True)
     child.start()
     try:
-        url = f"http://127.0.0.1:{ports.get(timeout=600)}"
+        url = f"http://127.0.0.1:{ports.get(timeout=600)}"  # the child is idle from here on
+        rows, load = [], [round(x, 2) for x in os.getloadavg()]
+        if args.inproc and args.map == "mapstore":
+            lat = run_inproc(args, args.requests)
+            rows.append(_row(args, "inproc", 1, lat, float(lat.sum())))  # wall: the queries, not the map build
         run_clients(url, 1, 5, args.text)  # warm-up: embedding cached, index built, sockets open
         t0 = time.perf_counter()
         lat = run_direct(args, args.requests)
-        rows = [_row(args, "zenoh", 1, lat, time.perf_counter() - t0)]
+        rows.append(_row(args, "zenoh", 1, lat, time.perf_counter() - t0))
         for clients in args.clients:
             per_client = max(1, args.requests // clients) if clients > 1 else args.requests
             t0 = time.perf_counter()
             lat = run_clients(url, clients, per_client, args.text)
             rows.append(_row(args, "http", clients, lat, time.perf_counter() - t0))
+        load += [round(x, 2) for x in os.getloadavg()]
+        for r in rows:
+            r["loadavg_1_5_15_before_after"] = load
+        print(f"text {args.text!r}, {args.labels} labels, answer cache {args.answer_cache}; load average (1, 5, 15 min) "
+              f"before {load[:3]}, after {load[3:]}")
         print(f"{'map':<9} {'route':<6} {'points':>9} {'clients':>7} {'requests':>8} {'p50 ms':>8} {'p99 ms':>8} {'q/s':>7}")
         for r in rows:
             print(f"{r['map']:<9} {r['route']:<6} {r['points']:>9} {r['clients']:>7} {r['requests']:>8} "
-                  f"{r['p50_ms']:>8.1f} {r['p99_ms']:>8.1f} {r['throughput_qps']:>7.1f}")
+                  f"{r['p50_ms']:>8.2f} {r['p99_ms']:>8.2f} {r['throughput_qps']:>7.1f}")
         if args.json:
             args.json.write_text(json.dumps(rows, indent=2))
     finally:

@@ -57,4 +57,9 @@ else
   rm -rf build
   $PIP install "$spec"
 fi
+if [[ ",$EXTRAS," == *",dev,"* ]]; then
+  # evo, the reference RPE/ATE implementation tests/test_rpe.py compares with: its core needs only numpy and
+  # scipy, and its plotting dependencies (matplotlib, pandas, seaborn...) are not needed for that
+  $PIP install --no-deps "evo==1.38.1"
+fi
 echo "$want" > "$stamp"

@@ -9,10 +9,13 @@ import signal
 import sys
 from pathlib import Path
 
+from pydantic import ValidationError
+
 from .common.errors import KmVipeError
 from .common.keys import DEFAULT_STREAM
 from .common.logs import setup_logging
 from .runner import children
+from .runner.semantics import TEXT_PROFILES
 
 DEFAULT_DEMO_SOURCE = "synth:frames={frames},seed={seed}"
 
@@ -30,12 +33,22 @@ def _add_stream_options(p: argparse.ArgumentParser) -> None:
 
 def _cmd_run(args: argparse.Namespace) -> int:
     from .runner.pipeline import RunSettings, run_pipeline
+    from .runner.rerun_log import load_rerun, target_settings
+    from .runner.semantics import check_models, semantic_profile
 
+    rerun = target_settings(args.rerun, args.rerun_connect, image_every=args.rerun_every,
+                            map_every_s=args.rerun_map_every, queries=tuple(args.rerun_query))
+    if rerun is not None:
+        load_rerun()  # a missing rerun-sdk ends the run before anything starts
+    profile = semantic_profile(args.text, args.source)
+    check_models(profile)
+    print(f"kmvipe: semantic queries of this map: {profile.support.line()}", flush=True)
     cfg = RunSettings(
         source=args.source, out=Path(args.out), stream=args.stream, pacing=args.pacing, encoding=args.encoding,
         intrinsics=tuple(args.intrinsics) if args.intrinsics else None, max_frames=args.max_frames, serve=args.serve,
         skip=tuple(args.skip), port=args.port, depth=getattr(args, "depth", False),
-        depth_scale=getattr(args, "depth_scale", None),
+        depth_scale=getattr(args, "depth_scale", None), text=args.text, topic=getattr(args, "topic", None),
+        rerun=rerun,
     )
     report = run_pipeline(cfg, on_outputs=_print_summary)  # the summary is printed as soon as it is written
     if report.stopped_by:  # SIGINT / SIGTERM / SIGHUP before the end of the stream: the shell's 128 + signal
@@ -56,9 +69,18 @@ def _print_summary(report) -> None:
           f"{report.frames_dropped_or_lost} dropped or lost")
     print(f"  keyframes:         {report.keyframes}")
     print(f"  frames with pose:  {report.posed_frames}")
+    if report.queries:
+        q = report.queries
+        print(f"  text queries:      {'available' if q['text'] else 'unavailable'} — {q['text_why']}")
+        print(f"  example queries:   {'available' if q['example'] else 'unavailable'} — {q['example_why']}")
     if report.ate_rmse_sim3 is not None:
         print(f"  ATE (Sim3) vs GT:  {report.ate_rmse_sim3:.4f} RMSE over {report.ate_pairs} poses")
     _print_live(report)
+    if report.rerun:
+        r = report.rerun
+        print(f"  rerun recording:   {r['poses']} poses, {r['images']} images, {r['map_points']} map points"
+              + "".join(f"; {text!r}: " + (f"{a['regions']} regions" if "regions" in a else a["error"])
+                        for text, a in r["queries"].items()))
     for path in report.outputs:
         print(f"  wrote {path}")
     sys.stdout.flush()
@@ -85,6 +107,7 @@ def _print_live(report) -> None:
     if report.drops:
         drops = ", ".join(f"{stage} {'?' if n is None else n}" for stage, n in report.drops.items())
         skipped = f"; codes skipped {report.codes_skipped}" if report.codes_skipped is not None else ""
+        skipped += f"; lost on the way to features {report.frames_lost}" if report.frames_lost else ""
         print(f"  dropped:           {drops}{skipped}")
     if report.end_of_stream_s is not None:
         print(f"  end of stream:     {report.end_of_stream_s:.1f} s from ingest's EOS to the last stage's")
@@ -123,11 +146,49 @@ def _cmd_publish(args: argparse.Namespace) -> int:
         os.environ["KMVIPE_INGEST_INTRINSICS"] = json.dumps(args.intrinsics)
     if args.max_frames:
         os.environ["KMVIPE_INGEST_MAX_FRAMES"] = str(args.max_frames)
+    if args.topic:
+        os.environ["KMVIPE_INGEST_TOPIC"] = args.topic
     return importlib.import_module("services.ingest.__main__").main()
+
+
+def _add_topic_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--topic", metavar="TOPIC",
+                   help="the image topic (sensor_msgs/Image or CompressedImage) to read from a ROS 2 bag source "
+                        "(.mcap, .db3, a rosbag2 folder), e.g. /camera/image_raw (KMVIPE_INGEST_TOPIC; default: the "
+                        "bag's only image topic)")
+
+
+def _add_rerun_options(p: argparse.ArgumentParser) -> None:
+    from .runner.rerun_log import DEFAULT_VIEWER, RERUN_INSTALL, RerunSettings
+
+    g = p.add_argument_group("Rerun recording", "frames, camera frustums, trajectory, map points and query answers, "
+                                                f"logged to Rerun (needs rerun-sdk: {RERUN_INSTALL})")
+    g.add_argument("--rerun", metavar="FILE.rrd|URL",
+                   help="write the recording to FILE.rrd (open it with `rerun FILE.rrd`), or stream it to a viewer "
+                        "at a rerun+http://... address")
+    g.add_argument("--rerun-connect", nargs="?", const=DEFAULT_VIEWER, metavar="URL",
+                   help=f"stream to a live viewer (start `rerun` first); default address {DEFAULT_VIEWER}")
+    g.add_argument("--rerun-every", type=int, default=RerunSettings.image_every, metavar="N",
+                   help="log every Nth frame's image (every pose is logged; images are most of the file)")
+    g.add_argument("--rerun-map-every", type=float, default=RerunSettings.map_every_s, metavar="S",
+                   help="refresh the map points every S seconds while streaming (a full export by the mapstore "
+                        "each time); 0: at end of stream only")
+    g.add_argument("--rerun-query", action="append", default=[], metavar="TEXT",
+                   help="at end of stream, ask the gateway TEXT and log its answer's regions (repeatable)")
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("kmvipe")
+    except PackageNotFoundError:  # a checkout on sys.path, never installed
+        return "unknown (not installed)"
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="kmvipe", description=__doc__)
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("run", help="run the whole pipeline on a source, write outputs")
@@ -138,7 +199,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="use the source's sensor depth (a folder's depth.txt, synth:depth=1); off: RGB only")
     p.add_argument("--depth-scale", type=float, default=None, metavar="UNITS_PER_M",
                    help="depth PNG units per metre (default per dataset: ADT 1000, TUM 5000)")
+    p.add_argument("--text", choices=TEXT_PROFILES, default="none",
+                   help="semantic profile: talk2dino = the backbone the Talk2DINO text head targets, with the "
+                        "CLIP text tower at the gateway (models checked before the stream starts); oracle = "
+                        "synthetic sources' ground-truth labels; none = the configured backbone (default)")
+    _add_topic_option(p)
     _add_stream_options(p)
+    _add_rerun_options(p)
     p.set_defaults(func=_cmd_run)
 
     p = sub.add_parser("demo", help="run the synthetic world through the pipeline")
@@ -146,7 +213,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=120)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--serve", action="store_true")
+    p.add_argument("--text", choices=TEXT_PROFILES, default="oracle",
+                   help="oracle (default): the world's ground-truth label features and vectors, so text queries "
+                        "work offline (labelled oracle everywhere); none: the real DINO backbone, no text; "
+                        "talk2dino: the real text path (needs its models)")
     _add_stream_options(p)
+    _add_rerun_options(p)
     p.set_defaults(func=_cmd_demo)
 
     p = sub.add_parser("service", help="run one service (what docker-compose runs); settings from the environment")
@@ -156,6 +228,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("publish", help="stream a camera or file from an edge device to a remote router")
     p.add_argument("source")
     p.add_argument("--connect", action="append", required=True, metavar="ENDPOINT", help="e.g. tcp/10.0.0.2:7447")
+    _add_topic_option(p)
     _add_stream_options(p)
     p.set_defaults(func=_cmd_publish, pacing="realtime")
 
@@ -167,12 +240,16 @@ def build_parser() -> argparse.ArgumentParser:
 # Tools of later stages; each exposes register(subparsers).
 _TOOL_MODULES = [
     "services.evaluation.cli", "services.common.models.cli", "services.mapstore.cli", "services.query_api.cli",
-    "services.common.bus_cli",
+    "services.common.bus_cli", "services.ros2.cli",
 ]
 
 
 def main(argv: list[str] | None = None) -> int:
-    setup_logging("kmvipe")
+    try:
+        setup_logging("kmvipe")
+    except (ValidationError, KmVipeError) as exc:  # a bad [log] table or KMVIPE_CONFIG file: one line, no traceback
+        print(f"kmvipe: error: invalid settings: {exc}", file=sys.stderr)
+        return 2
     logging.getLogger().setLevel(logging.WARNING)
     args = build_parser().parse_args(argv)
     try:

@@ -110,6 +110,22 @@ def test_features_sends_a_resumed_ba_what_came_after_its_checkpoint_once():
     assert replay.due() == []
 
 
+def test_a_consumer_that_resumes_past_a_gap_gets_what_was_sent_while_none_was_up():
+    """The mapstore had committed keyframe 2 when it was killed; keyframe 4 went out while none was up and 6 after
+    the new instance subscribed, so its first report says 6: features must send 4 again (and 6, taken once)."""
+    replay = ReplayBuffer(prefix="mapstore-", kinds=(Keyframe,))
+    key = keys.topic(STREAM, keys.KEYFRAME)
+    replay.on_progress(_progress("mapstore-a.1", 0, 0))
+    for seq in (0, 2):
+        replay.record(key, _keyframe(seq))
+    replay.on_progress(_progress("mapstore-a.1", 2, 2))  # committed up to 2, then killed
+    for seq in (4, 6):
+        replay.record(key, _keyframe(seq))
+    assert replay.on_progress(_progress("mapstore-b.2", 6, 6)) == ["mapstore-a.1"]
+    replay.record(key, _keyframe(8))  # the loop keeps sending before it gets to the replay
+    assert [m.seq for _, m in replay.due()] == [4, 6, 8]
+
+
 def test_a_full_replay_buffer_gives_up_the_oldest_and_counts_them():
     replay = ReplayBuffer(max_messages=3)
     replay.on_progress(_progress("ba-a.1", -1, -1))

@@ -49,8 +49,16 @@ def _examples() -> list[schema.Message]:
         schema.Poses("s", 4, 0, frame_seqs=np.arange(3), stamps_ns=np.arange(3) * 10, poses=eye, final=True),
         schema.Intrinsics("s", 4, 0, intrinsics=k, width=24, height=16),
         schema.Eos("s", 7, 0, stage="ingest", count=8),
-        schema.Eos("s", 7, 0, stage="features", count=3, dropped=2, codes_skipped=1),
+        schema.Eos("s", 7, 0, stage="features", count=3, dropped=2, codes_skipped=1, lost=4),
         schema.MapQuery("s", 1, 0, vectors=np.ones((2, 8), np.float32), space="x"),
+        schema.KeyframeList("s", 2, 0, seqs=np.array([0, 4]), stamps_ns=np.array([0, 9]),
+                            widths=np.array([24, 24], np.int32), heights=np.array([16, 16], np.int32),
+                            has_codes=np.array([1, 0], np.uint8), has_thumbnail=np.array([1, 1], np.uint8)),
+        schema.KeyframeThumbnail("s", 4, 0, jpeg=b"\xff\xd8abc", width=12, height=8),
+        schema.KeyframeQuery("s", 1, 0, keyframe=4, box=np.array([0.1, 0.2, 0.5, 0.6])),
+        schema.KeyframeRefusal("s", 4, 0, status="no_codes", reason="not yet"),
+        schema.MapSessions("s", 0, 0, current="b", names="a\nb", keyframes=np.array([3, 1]),
+                           finished=np.array([1, 0], np.uint8)),
     ]
 
 

@@ -10,6 +10,7 @@ from services.features.core.depth import sensor_disparity
 from services.features.core.geometry import Intrinsics
 from services.ingest.sources import open_source
 from services.mapstore.core.geometry import grid_intrinsics
+from services.mapstore.export import ColmapImage, write_colmap
 from services.synth import SynthConfig, SynthWorld
 
 K = Intrinsics(500.0, 480.0, 255.5, 191.5)
@@ -75,6 +76,20 @@ def test_tum_files_hold_xyzw_quaternions_camera_to_world(tmp_path):
     np.testing.assert_allclose(fields[1:4], [1, 2, 3])
     np.testing.assert_allclose(np.abs(fields[4:]), [0, 0, np.sqrt(0.5), np.sqrt(0.5)], atol=1e-9)
     np.testing.assert_allclose(read_tum(tmp_path / "t.txt").world_from_cam[0], pose, atol=1e-9)
+
+
+def test_tum_and_colmap_files_hold_the_same_quaternion_in_their_orders(tmp_path):
+    """TUM: world_from_cam as (x, y, z, w); COLMAP: cam_from_world as (w, x, y, z); both with w >= 0."""
+    pose = np.eye(4)
+    pose[:3, :3] = cv2.Rodrigues(np.array([0.3, -2.5, 0.4]))[0]  # over 90°: a sign to choose
+    write_tum(tmp_path / "t.txt", Trajectory(np.array([0.0]), pose[None]))
+    tum = np.array((tmp_path / "t.txt").read_text().splitlines()[-1].split()[4:], float)
+    cam = ColmapImage("0.jpg", np.linalg.inv(pose), np.array(K), (512, 384))  # its cam_from_world is `pose`
+    folder = write_colmap(tmp_path / "colmap", {0: cam})
+    line = next(x for x in (folder / "images.txt").read_text().splitlines() if not x.startswith("#"))
+    colmap = np.array(line.split()[1:5], float)
+    assert tum[3] >= 0 and colmap[0] >= 0
+    np.testing.assert_allclose(colmap, np.roll(tum, 1), atol=1e-9)
 
 
 def test_wire_images_are_rgb(tmp_path):

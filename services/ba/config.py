@@ -1,4 +1,5 @@
-"""Settings of the BA service (``KMVIPE_BA_*`` environment variables), built once per process.
+"""Settings of the BA service (``KMVIPE_BA_*`` environment variables, or ``[ba]`` of the ``KMVIPE_CONFIG`` file),
+built once per process.
 
 The algorithm parameters are turned into the frozen dataclasses of :mod:`services.ba.core.params`, which the
 math core takes; the core never reads settings itself.
@@ -8,13 +9,14 @@ from __future__ import annotations
 from typing import Literal
 
 import torch
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import SettingsConfigDict
 
 from services.ba.core.params import BAParams, FlowParams, RobustParams
+from services.common.config_file import KmVipeSettings
 from services.common.keys import ALL_STREAMS
 
 
-class BASettings(BaseSettings):
+class BASettings(KmVipeSettings):
     """Dense BA service settings."""
 
     model_config = SettingsConfigDict(env_prefix="KMVIPE_BA_", env_file=".env", extra="ignore")

@@ -1,4 +1,5 @@
-"""Deployment settings of the BA service (``KMVIPE_BA_*``), built once per process.
+"""Deployment settings of the BA service (``KMVIPE_BA_*``, or ``[ba]`` of the ``KMVIPE_CONFIG`` file), built once per
+process.
 
 The BA-core fields (robust kernel, iterations, flow preset, ...) come from :class:`services.ba.config.BASettings`;
 this class adds the service and frontend ones and turns everything into :class:`FrontendParams`.

@@ -1,8 +1,9 @@
 """Typed settings shared by every service: the Zenoh bus, logging, and the metrics and health endpoints.
 
-Each is built once from the environment (``KMVIPE_BUS_*``, ``KMVIPE_LOG_*``, ``KMVIPE_METRICS_*``) or an optional
-``.env`` file; defaults work on one machine. Lists are JSON in the environment:
-``KMVIPE_BUS_CONNECT='["tcp/10.0.0.2:7447"]'``.
+Each is built once from the environment (``KMVIPE_BUS_*``, ``KMVIPE_LOG_*``, ``KMVIPE_METRICS_*``), an optional
+``.env`` file, or the ``[bus]``, ``[log]`` and ``[metrics]`` tables of the ``KMVIPE_CONFIG`` file
+(:mod:`services.common.config_file`); defaults work on one machine. Lists are JSON in the environment:
+``KMVIPE_BUS_CONNECT='["tcp/10.0.0.2:7447"]'``, TOML arrays in the file.
 """
 from __future__ import annotations
 
@@ -10,12 +11,14 @@ from pathlib import Path
 from typing import Literal
 
 from pydantic import Field, SecretStr, field_validator, model_validator
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import SettingsConfigDict
+
+from .config_file import KmVipeSettings
 
 ENDPOINT_PREFIXES = ("tcp/", "udp/", "tls/", "quic/", "ws/", "unixsock-stream/")
 
 
-class BusSettings(BaseSettings):
+class BusSettings(KmVipeSettings):
     """How a process joins the Zenoh bus."""
 
     model_config = SettingsConfigDict(env_prefix="KMVIPE_BUS_", env_file=".env", extra="ignore")
@@ -67,7 +70,7 @@ class BusSettings(BaseSettings):
         return self
 
 
-class LogSettings(BaseSettings):
+class LogSettings(KmVipeSettings):
     """Logging of one process."""
 
     model_config = SettingsConfigDict(env_prefix="KMVIPE_LOG_", env_file=".env", extra="ignore")
@@ -77,7 +80,7 @@ class LogSettings(BaseSettings):
     """text: ``time level logger message key=value…``; json: one object per line for log shippers."""
 
 
-class MetricsSettings(BaseSettings):
+class MetricsSettings(KmVipeSettings):
     """The metrics and health endpoints of a service process (``/metrics``, ``/livez``, ``/readyz``;
     :mod:`services.common.metrics`)."""
 

@@ -41,3 +41,8 @@ class ServiceTimeout(KmVipeError):
         super().__init__(f"service '{service}' did not answer within {seconds:.1f} s")
         self.service = service
         self.seconds = seconds
+
+
+class UnknownSession(KmVipeError):
+    """A map verb asked for a session of which no map is kept. Its class name is the wire contract: a queryable's
+    error reply reads ``UnknownSession: ...`` and the gateway answers 404 with it."""

@@ -1,13 +1,16 @@
 """Structured logging: one logger per module; fields such as stream, seq and t_ns go in ``extra``.
 
 ``log.warning("dropped corrupt frame", extra={"stream": s, "seq": 12})`` prints
-``… WARNING services.ingest.service dropped corrupt frame stream=cam0 seq=12``.
+``… WARNING services.ingest.service dropped corrupt frame stream=cam0 seq=12``, or with ``KMVIPE_LOG_FORMAT=json``
+``{"time": "…", "level": "WARNING", "logger": "services.ingest.service", "message": "dropped corrupt frame",
+"stream": "cam0", "seq": 12}`` (python-json-logger).
 """
 from __future__ import annotations
 
-import json
 import logging
 import sys
+
+from pythonjsonlogger.json import JsonFormatter
 
 from .config import LogSettings
 
@@ -25,18 +28,11 @@ class TextFormatter(logging.Formatter):
         return f"{line} {extra}" if extra else line
 
 
-class JsonFormatter(logging.Formatter):
-    def format(self, record: logging.LogRecord) -> str:
-        body = {
-            "time": self.formatTime(record),
-            "level": record.levelname,
-            "logger": record.name,
-            "message": record.getMessage(),
-            **_fields(record),
-        }
-        if record.exc_info:
-            body["exc"] = self.formatException(record.exc_info)
-        return json.dumps(body, default=str)
+def json_formatter() -> JsonFormatter:
+    """One JSON object per line: time, level, logger, message, the record's ``extra`` fields, ``exc`` when an
+    exception is logged; values JSON cannot hold are written as their ``str``."""
+    return JsonFormatter("{asctime}{levelname}{name}{message}", style="{",
+                         rename_fields={"asctime": "time", "levelname": "level", "name": "logger", "exc_info": "exc"})
 
 
 def setup_logging(service: str, settings: LogSettings | None = None) -> None:
@@ -44,7 +40,7 @@ def setup_logging(service: str, settings: LogSettings | None = None) -> None:
     settings = settings or LogSettings()
     handler = logging.StreamHandler(sys.stderr)
     if settings.format == "json":
-        handler.setFormatter(JsonFormatter())
+        handler.setFormatter(json_formatter())
     else:
         handler.setFormatter(TextFormatter(f"%(asctime)s %(levelname)s [{service}] %(name)s %(message)s"))
     root = logging.getLogger()

@@ -1,37 +1,28 @@
-"""Rotation matrices ↔ Hamilton quaternions in (x, y, z, w) order, vectorised numpy — the one place files
-(TUM, COLMAP) get their quaternions from. The torch versions in ``services/ba/core/se3.py`` serve the solver."""
+"""Rotation matrices ↔ Hamilton quaternions in (x, y, z, w) order — the one place files and messages (TUM, COLMAP,
+ROS) get their quaternions from, so they all take the same sign. scipy does the maths; the torch versions in
+``services/ba/core/se3.py`` serve the solver (batched on its device, differentiable)."""
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 
 def quaternion_to_rotation(q: np.ndarray) -> np.ndarray:
-    """``(N, 4)`` Hamilton quaternions ``(x, y, z, w)`` (normalised here) -> ``(N, 3, 3)`` rotations."""
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    x, y, z, w = q.T
-    rot = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
-                    2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
-                    2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=-1)
-    return rot.reshape(-1, 3, 3)
+    """``(..., 4)`` Hamilton quaternions ``(x, y, z, w)`` (normalised here) -> ``(..., 3, 3)`` rotations."""
+    return Rotation.from_quat(q).as_matrix()
 
 
 def rotation_to_quaternion(rot: np.ndarray) -> np.ndarray:
-    """``(N, 3, 3)`` rotations -> ``(N, 4)`` Hamilton quaternions ``(x, y, z, w)`` with ``w >= 0``."""
-    m = np.asarray(rot, np.float64)
-    if m.ndim != 3 or m.shape[1:] != (3, 3):
-        raise ValueError(f"rotations must be (N, 3, 3), got {m.shape}")
-    # The symmetric 4x4 matrix whose top eigenvector is the quaternion (Bar-Itzhack): robust for all angles.
-    k = np.empty((len(m), 4, 4))
-    k[:, 0, 0] = m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2]
-    k[:, 1, 1] = m[:, 1, 1] - m[:, 0, 0] - m[:, 2, 2]
-    k[:, 2, 2] = m[:, 2, 2] - m[:, 0, 0] - m[:, 1, 1]
-    k[:, 3, 3] = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
-    k[:, 0, 1] = k[:, 1, 0] = m[:, 0, 1] + m[:, 1, 0]
-    k[:, 0, 2] = k[:, 2, 0] = m[:, 0, 2] + m[:, 2, 0]
-    k[:, 1, 2] = k[:, 2, 1] = m[:, 1, 2] + m[:, 2, 1]
-    k[:, 0, 3] = k[:, 3, 0] = m[:, 2, 1] - m[:, 1, 2]
-    k[:, 1, 3] = k[:, 3, 1] = m[:, 0, 2] - m[:, 2, 0]
-    k[:, 2, 3] = k[:, 3, 2] = m[:, 1, 0] - m[:, 0, 1]
-    _, vecs = np.linalg.eigh(k / 3.0)
-    q = vecs[:, :, -1]
-    return np.where(q[:, 3:4] < 0, -q, q)
+    """``(..., 3, 3)`` rotations -> ``(..., 4)`` Hamilton quaternions ``(x, y, z, w)`` with ``w >= 0`` (one sign
+    of the two that give each rotation, so a file is the same for the same poses)."""
+    return Rotation.from_matrix(rot).as_quat(canonical=True)
+
+
+def quaternion_wxyz(rot: np.ndarray) -> np.ndarray:
+    """``(..., 3, 3)`` rotations -> ``(..., 4)`` quaternions ``(w, x, y, z)``, ``w >= 0``: COLMAP's order."""
+    return np.roll(rotation_to_quaternion(rot), 1, axis=-1)
+
+
+def rotation_from_wxyz(q: np.ndarray) -> np.ndarray:
+    """``(..., 4)`` quaternions ``(w, x, y, z)`` (normalised here) -> ``(..., 3, 3)`` rotations."""
+    return quaternion_to_rotation(np.roll(np.asarray(q, np.float64), -1, axis=-1))

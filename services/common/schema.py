@@ -11,6 +11,7 @@ Conventions (poses ``world_from_cam``, RGB, the 1/8 grid) are in docs/CONVENTION
 from __future__ import annotations
 
 import dataclasses
+import functools
 import re
 import types
 import typing
@@ -198,6 +199,7 @@ class Eos(Message):
     reason: str = "end"  # "end" | "error" | "stopped"
     dropped: int = 0  # messages this stage dropped by its real-time policy (never keyframes, codes, bases, EOS)
     codes_skipped: int = 0  # features, real-time: keyframes the backbone skipped as stale (no codes sent)
+    lost: int = 0  # frames the stage before announced that never arrived (lost on the way: Zenoh drops on congestion)
 
 
 # --- mapstore queries (``kmvipe/<s>/map/<verb>``: the request is the query payload, the answer the reply) ---
@@ -307,9 +309,15 @@ def decode(payload: bytes | bytearray | memoryview, expect: type[Message] | None
     return from_dict(cls, body)
 
 
+@functools.cache
+def _hints(cls: type[Message]) -> dict[str, Any]:
+    """The field types of a message class, resolved once (``get_type_hints`` costs ~0.1 ms, on every decode)."""
+    return typing.get_type_hints(cls)
+
+
 def from_dict(cls: type[Message], body: dict) -> Message:
     """Build and validate ``cls`` from a decoded map (unknown keys are ignored: newer minor fields)."""
-    hints = typing.get_type_hints(cls)
+    hints = _hints(cls)
     dims: dict[str, int] = {}
     values = {}
     for f in dataclasses.fields(cls):
@@ -363,3 +371,86 @@ def _check_array(kind: str, name: str, value: Any, meta: Any, dims: dict[str, in
         if isinstance(want, str) and dims.setdefault(want, n) != n:
             raise DecodeError(f"{kind}: field '{name}' dimension {want}={n} disagrees with {dims[want]}")
     return value
+
+
+# --- query by keyframe region (``kmvipe/<s>/map/{keyframes,keyframe,example}``; services/mapstore/keyframe_queries.py)
+
+
+@dataclass(frozen=True)
+class KeyframeList(Message):
+    """mapstore → anyone (``map/keyframes``): every keyframe the map has stored, ascending ``seqs``."""
+
+    KIND: ClassVar[str] = "keyframe_list"
+    seqs: np.ndarray = field(metadata=arr("i8", ("N",)))
+    stamps_ns: np.ndarray = field(metadata=arr("i8", ("N",)))
+    widths: np.ndarray = field(metadata=arr("i4", ("N",)))  # the keyframe's working image, pixels
+    heights: np.ndarray = field(metadata=arr("i4", ("N",)))
+    has_codes: np.ndarray = field(metadata=arr("u1", ("N",)))  # 1: codes and their basis are in (queryable)
+    has_thumbnail: np.ndarray = field(metadata=arr("u1", ("N",)))
+
+
+@dataclass(frozen=True)
+class KeyframeThumbnail(Message):
+    """mapstore → anyone (``map/keyframe?seq=n``): the small JPEG of keyframe ``seq`` (RGB, longest side
+    the mapstore's ``thumbnail_side``)."""
+
+    KIND: ClassVar[str] = "keyframe_thumbnail"
+    jpeg: bytes
+    width: int  # of the thumbnail, pixels
+    height: int
+
+
+@dataclass(frozen=True)
+class KeyframeQuery(Message):
+    """query_api → mapstore (``map/example``): the region ``box`` of keyframe ``keyframe`` as the query; its codes
+    pooled over the 1/8-grid cells inside are the query vector. ``box`` is [x0, y0, x1, y1] normalised to the
+    image (0 = left/top edge, 1 = right/bottom edge); a box that holds no cell centre (x0 = x1, y0 = y1: a click)
+    takes the cell under its centre. ``seq`` is a request id, echoed in the answer (a ``MapAnswer``)."""
+
+    KIND: ClassVar[str] = "keyframe_query"
+    keyframe: int
+    box: np.ndarray = field(metadata=arr("f4 f8", (4,)))
+    top_k: int = 20
+    threshold: float = -1.0  # as MapQuery
+    max_regions: int = 10
+    with_points: bool = False
+
+
+@dataclass(frozen=True)
+class KeyframeRefusal(Message):
+    """mapstore → query_api: why a ``map/keyframe`` or ``map/example`` request was not answered. ``status``:
+    ``not_found`` (no such keyframe or thumbnail), ``no_codes`` (its codes or their basis are not in yet, or never
+    will be) or ``bad_request`` (a box outside [0, 1] or inverted)."""
+
+    KIND: ClassVar[str] = "keyframe_refusal"
+    status: str
+    reason: str
+
+    def check(self) -> None:
+        if self.status not in ("not_found", "no_codes", "bad_request"):
+            raise DecodeError(f"keyframe_refusal: status {self.status!r} must be not_found, no_codes or bad_request")
+
+
+MESSAGES.update({cls.KIND: cls for cls in (KeyframeList, KeyframeThumbnail, KeyframeQuery, KeyframeRefusal)})
+
+
+@dataclass(frozen=True)
+class MapSessions(Message):
+    """mapstore → anyone (``map/sessions``): the stream's sessions with a map: the current one (``current``) and
+    every earlier one kept aside (services/mapstore/sessions.py), each queryable with ``?session=<id>``."""
+
+    KIND: ClassVar[str] = "map_sessions"
+    current: str
+    names: str  # session ids, newline-separated, in the order of the arrays (ids are [A-Za-z0-9_-], no newline)
+    keyframes: np.ndarray = field(metadata=arr("i8", ("N",)))
+    finished: np.ndarray = field(metadata=arr("u1", ("N",)))  # 1: the session's stream ended (its map is complete)
+
+    def sessions(self) -> list[str]:
+        return self.names.split("\n") if self.names else []
+
+    def check(self) -> None:
+        if len(self.sessions()) != len(self.keyframes):
+            raise DecodeError(f"map_sessions: {len(self.sessions())} names for {len(self.keyframes)} sessions")
+
+
+MESSAGES.update({MapSessions.KIND: MapSessions})

@@ -49,7 +49,11 @@ def service_main(name: str, body: ServiceBody, handles_frames: bool = False, han
     With ``KMVIPE_METRICS_PORT`` set, ``/metrics``, ``/livez`` and ``/readyz`` are served while the bus is open
     (:mod:`services.common.metrics`).
     """
-    setup_logging(name)
+    try:
+        setup_logging(name)
+    except (ValidationError, KmVipeError) as exc:  # a bad [log] table or KMVIPE_CONFIG file
+        print(f"{name}: invalid settings: {exc}", file=sys.stderr)
+        return 2
     for handler in logging.getLogger().handlers:
         handler.addFilter(StreamField())
     stop = stop_on_signals()
@@ -64,7 +68,8 @@ def service_main(name: str, body: ServiceBody, handles_frames: bool = False, han
         with Bus(BusSettings(), name) as bus, metrics.serving(endpoints, bus):
             result = body(bus, stop)
     except ValidationError as exc:
-        print(f"{name}: invalid settings (check the KMVIPE_* environment variables):\n{exc}", file=sys.stderr)
+        print(f"{name}: invalid settings (check the KMVIPE_* environment variables and the KMVIPE_CONFIG file):\n{exc}",
+              file=sys.stderr)
         return 2
     except KmVipeError as exc:
         print(f"{name}: {exc}", file=sys.stderr)

@@ -19,8 +19,9 @@ import hashlib
 import re
 
 from pydantic import AliasChoices, Field, model_validator
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import SettingsConfigDict
 
+from .config_file import KmVipeSettings
 from .keys import check_name
 
 _DOMAIN = b"kmvipe-shard-v1"
@@ -69,7 +70,7 @@ def ordinal_from_pod_name(name: str) -> int:
     return int(match["ordinal"])
 
 
-class ShardSettings(BaseSettings):
+class ShardSettings(KmVipeSettings):
     """Which shard this process is (env prefix ``KMVIPE_SHARD_``); :attr:`index` is resolved on construction."""
 
     model_config = SettingsConfigDict(env_prefix="KMVIPE_SHARD_", env_file=".env", extra="ignore",

@@ -26,11 +26,12 @@ from typing import Callable, Iterable
 
 from . import keys
 from .bus import Bus, Delivery, Inbox
+from .config_file import KmVipeSettings
 from .schema import Credit, Eos, Message
 from .sharding import ShardSettings, owns
 
 from pydantic import Field
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import SettingsConfigDict
 
 log = logging.getLogger(__name__)
 
@@ -263,7 +264,7 @@ def hold(bus, holding: bool) -> None:
         bus.hold(holding)
 
 
-class HostSettings(BaseSettings):
+class HostSettings(KmVipeSettings):
     """How a service that serves every stream handles them (env prefix ``KMVIPE_STREAMS_``)."""
 
     model_config = SettingsConfigDict(env_prefix="KMVIPE_STREAMS_", env_file=".env", extra="ignore")

@@ -1,4 +1,5 @@
 """Absolute trajectory error: timestamp association, Umeyama SE(3)/Sim(3) alignment, statistics (numpy).
+The relative pose error over the same association and alignment is in :mod:`services.evaluation.rpe`.
 
 Reproduces ``evo_ape <fmt> GT EST [-a | -as] --t_max_diff D`` (evo 1.38, pose relation = translation part):
 association is evo's ``nearest_time`` rule, alignment maps the estimate onto the reference.
@@ -29,6 +30,14 @@ class Alignment:
     rotation: np.ndarray  # (3, 3)
     translation: np.ndarray  # (3,)
     scale: float
+
+    def apply(self, poses: np.ndarray) -> np.ndarray:
+        """``world_from_cam`` poses ``(N, 4, 4)`` of the estimate in the reference frame: positions mapped as
+        points, orientations rotated (evo's ``align``: scale the positions, then left-multiply the SE(3) part)."""
+        out = poses.copy()
+        out[:, :3, :3] = self.rotation @ poses[:, :3, :3]
+        out[:, :3, 3] = self.scale * poses[:, :3, 3] @ self.rotation.T + self.translation
+        return out
 
 
 @dataclass(frozen=True)
@@ -86,20 +95,32 @@ def umeyama(source: np.ndarray, target: np.ndarray, with_scale: bool) -> Alignme
     return Alignment(rotation=rot, translation=mu_t - scale * rot @ mu_s, scale=scale)
 
 
+def matched_poses(reference: Trajectory, estimate: Trajectory,
+                  max_diff: float) -> tuple[np.ndarray, np.ndarray, Association]:
+    """The associated ``world_from_cam`` poses ``(M, 4, 4)`` of both trajectories (ValueError with fewer than 3)."""
+    pairs = associate(reference.timestamps, estimate.timestamps, max_diff)
+    if len(pairs.reference_index) < 3:
+        raise ValueError(f"only {len(pairs.reference_index)} pose pairs within {max_diff} s; need >= 3")
+    return (reference.world_from_cam[pairs.reference_index], estimate.world_from_cam[pairs.estimate_index], pairs)
+
+
+def align_poses(estimate: np.ndarray, reference: np.ndarray, align: str) -> Alignment:
+    """The alignment ``se3|sim3|none`` of matched positions ``estimate`` onto ``reference`` ``(M, 3)``."""
+    if align not in ALIGNMENTS:
+        raise ValueError(f"align must be one of {ALIGNMENTS}, got {align!r}")
+    if align == "none":
+        return Alignment(np.eye(3), np.zeros(3), 1.0)
+    return umeyama(estimate, reference, with_scale=align == "sim3")
+
+
 def absolute_trajectory_error(reference: Trajectory, estimate: Trajectory, align: str = "se3",
                               max_diff: float = 0.01) -> AteResult:
     """ATE of ``estimate`` against ``reference`` after association and alignment (``se3|sim3|none``)."""
     if align not in ALIGNMENTS:
         raise ValueError(f"align must be one of {ALIGNMENTS}, got {align!r}")
-    pairs = associate(reference.timestamps, estimate.timestamps, max_diff)
-    if len(pairs.reference_index) < 3:
-        raise ValueError(f"only {len(pairs.reference_index)} pose pairs within {max_diff} s; need >= 3")
-    ref = reference.positions[pairs.reference_index]
-    est = estimate.positions[pairs.estimate_index]
-    if align == "none":
-        alignment = Alignment(np.eye(3), np.zeros(3), 1.0)
-    else:
-        alignment = umeyama(est, ref, with_scale=align == "sim3")
+    ref_poses, est_poses, _ = matched_poses(reference, estimate, max_diff)
+    ref, est = ref_poses[:, :3, 3], est_poses[:, :3, 3]
+    alignment = align_poses(est, ref, align)
     aligned = alignment.scale * est @ alignment.rotation.T + alignment.translation
     err = np.linalg.norm(aligned - ref, axis=1)
     return AteResult(rmse=float(np.sqrt((err**2).mean())), mean=float(err.mean()), median=float(np.median(err)),

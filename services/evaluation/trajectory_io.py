@@ -2,17 +2,23 @@
 
 Poses are ``world_from_cam`` (camera-to-world) ``(N, 4, 4)`` float64 (docs/CONVENTIONS.md). TUM quaternions
 are Hamilton ``(x, y, z, w)``. KITTI files carry no time: the frame index is used as the timestamp.
+:func:`tum_text` is the one TUM writer (the runner's files, the gateway's ``?format=tum``, the synthetic world's
+``groundtruth.txt``).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
 from services.common.rotations import quaternion_to_rotation, rotation_to_quaternion  # noqa: F401 (re-exported)
 
 FORMATS = ("tum", "kitti")
+TUM_DECIMALS = 9
+"""Decimals of TUM values: nanometres, and 1e-9 in the quaternions (trailing zeros are left out)."""
+TUM_COMMENT = "timestamp tx ty tz qx qy qz qw (world_from_cam)"
 
 
 class TrajectoryFormatError(ValueError):
@@ -80,13 +86,32 @@ def read_trajectory(path: str | Path, fmt: str) -> Trajectory:
     return read_tum(path) if fmt == "tum" else read_kitti(path)
 
 
+def tum_timestamp(t_ns: int, decimals: int = TUM_DECIMALS) -> str:
+    """Seconds with ``decimals`` decimals from integer nanoseconds, exact (truncated, no float rounding):
+    ``tum_timestamp(1_500_000_000, 6) == "1.500000"``."""
+    ticks = int(t_ns) // 10 ** (9 - decimals)
+    return f"{ticks // 10 ** decimals}.{ticks % 10 ** decimals:0{decimals}d}"
+
+
+def tum_text(stamps: Sequence[str], world_from_cam: np.ndarray, comment: str | None = None) -> str:
+    """TUM lines ``stamp tx ty tz qx qy qz qw`` of ``(N, 4, 4)`` poses, one per (already formatted) stamp, after an
+    optional ``# comment`` line; values with :data:`TUM_DECIMALS` decimals."""
+    poses = np.asarray(world_from_cam, np.float64)
+    if poses.shape != (len(stamps), 4, 4):
+        raise ValueError(f"need (N, 4, 4) poses for N={len(stamps)} stamps, got {poses.shape}")
+    values = np.concatenate([poses[:, :3, 3], rotation_to_quaternion(poses[:, :3, :3])], axis=1)
+    values = np.round(values, TUM_DECIMALS) + 0.0  # + 0.0: -0.0 (from rounding a tiny negative) prints as 0
+    # fixed point, then trailing zeros cut: "5", "0.1", "-1.25" (the fractional part always has a dot to stop at)
+    lines = [f"# {comment}"] if comment else []
+    lines += [stamp + " " + " ".join(f"{v:.{TUM_DECIMALS}f}".rstrip("0").rstrip(".") for v in row)
+              for stamp, row in zip(stamps, values.tolist())]
+    return "\n".join(lines) + "\n" if lines else ""
+
+
 def write_tum(path: str | Path, traj: Trajectory) -> None:
-    """Write ``traj`` as TUM (timestamps with 9 decimals, positions/quaternions with 9)."""
-    q = rotation_to_quaternion(traj.world_from_cam[:, :3, :3])
-    rows = np.concatenate([traj.timestamps[:, None], traj.positions, q], axis=1)
-    lines = ["# timestamp tx ty tz qx qy qz qw (world_from_cam)"]
-    lines += [" ".join(f"{v:.9f}" for v in row) for row in rows]
-    Path(path).write_text("\n".join(lines) + "\n")
+    """Write ``traj`` as TUM (timestamps and values with 9 decimals)."""
+    stamps = [f"{t:.{TUM_DECIMALS}f}" for t in traj.timestamps.tolist()]
+    Path(path).write_text(tum_text(stamps, traj.world_from_cam, TUM_COMMENT))
 
 
 def write_kitti(path: str | Path, traj: Trajectory) -> None:

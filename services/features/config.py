@@ -1,4 +1,5 @@
-"""Settings of the features service, built once from the environment (``KMVIPE_FEATURES_*``)."""
+"""Settings of the features service, built once from the environment (``KMVIPE_FEATURES_*``) or the ``[features]``
+table of the ``KMVIPE_CONFIG`` file."""
 from __future__ import annotations
 
 import time
@@ -6,8 +7,9 @@ from pathlib import Path
 from typing import Literal
 
 from pydantic import Field
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import SettingsConfigDict
 
+from ..common.config_file import KmVipeSettings
 from ..common.errors import ConfigError
 from ..common.keys import ALL_STREAMS
 from .core.depth import DepthParams
@@ -23,7 +25,7 @@ CPU_SCALES: tuple[float, ...] = (1.0,)
 """Pyramid used on a CPU unless configured: one scale keeps a keyframe near a second on 2 cores."""
 
 
-class FeaturesSettings(BaseSettings):
+class FeaturesSettings(KmVipeSettings):
     """Deployment settings; :meth:`params` turns the algorithm ones into frozen dataclasses."""
 
     model_config = SettingsConfigDict(env_prefix="KMVIPE_FEATURES_", env_file=".env", extra="ignore")

@@ -54,7 +54,11 @@ class ReplayBuffer:
         with self._lock:
             self.active = True
             if replaced:  # it resumed from its durable state: what came after it is due again
-                self._resume_after, self.durable = msg.seq, msg.durable
+                # from its predecessor's durable point too: a message sent while none was up, then one the new
+                # instance got live before its first report, put that report past a gap (the repeats are
+                # recognised downstream); the floor stays the durable point until the replay has gone out
+                floor = min(msg.seq, self.durable)
+                self._resume_after, self.durable = floor, floor
             else:
                 self.durable = max(self.durable, msg.durable)
             return replaced

@@ -210,8 +210,9 @@ def closing_outputs(state: FeaturesState) -> Outputs:
     if msg is None or not state.semantics.idle():
         return outputs
     outputs += coded_outputs(state)  # what finished between the first look and the idle check
+    lost = max(0, msg.count - max(state.first_seq, 0) - state.frames_seen - state.dropped)
     eos = Eos(msg.stream, msg.seq, time.time_ns(), stage="features", count=state.published, reason=msg.reason,
-              dropped=state.dropped, codes_skipped=state.semantics.skipped)
+              dropped=state.dropped, codes_skipped=state.semantics.skipped, lost=lost)
     state.frames_seen, state.published, state.closing = 0, 0, None  # a new stream may follow on the same key
     state.first_seq = -1
     state.dropped = 0

@@ -1,20 +1,26 @@
-"""Settings of the ingest service (env prefix ``KMVIPE_INGEST_``)."""
+"""Settings of the ingest service (env prefix ``KMVIPE_INGEST_``, or ``[ingest]`` of the ``KMVIPE_CONFIG`` file)."""
 from __future__ import annotations
 
 from typing import Literal
 
 from pydantic import Field, field_validator
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import SettingsConfigDict
 
+from ..common.config_file import KmVipeSettings
 from ..common.keys import DEFAULT_STREAM
 
 
-class IngestSettings(BaseSettings):
+class IngestSettings(KmVipeSettings):
     model_config = SettingsConfigDict(env_prefix="KMVIPE_INGEST_", env_file=".env", extra="ignore")
 
     source: str = ""
     """Video file, image folder (plain, TUM ``rgb.txt``, KITTI ``image_0/``), camera index or ``/dev/videoN``,
-    ``rtsp://`` / ``http(s)://`` URL, or ``synth:frames=200,seed=0`` for the synthetic world."""
+    ``rtsp://`` / ``http(s)://`` URL, a ROS 2 bag (``.mcap``, ``.db3`` or a rosbag2 folder), a live ROS 2 image topic
+    over Zenoh (``ros2:/camera/image_raw``; settings ``KMVIPE_ROS2_*``, services/ros2/README.md), or
+    ``synth:frames=200,seed=0`` for the synthetic world."""
+    topic: str = ""
+    """The image topic (``sensor_msgs/Image`` or ``CompressedImage``) of a ROS 2 bag source; empty: the bag's only
+    image topic (``kmvipe run bag.mcap --topic /camera/image_raw``)."""
     stream: str = DEFAULT_STREAM
     """Stream name: the ``<s>`` in every key, so one deployment can serve several cameras."""
     pacing: Literal["lossless", "realtime"] = "lossless"

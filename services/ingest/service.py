@@ -77,7 +77,7 @@ class CreditGate:
 def run(cfg: IngestSettings, bus: Bus, stop: threading.Event, source: Source | None = None) -> IngestCounters:
     """Stream ``cfg.source`` (or ``source``) onto the bus until it ends or ``stop`` is set."""
     source = source or open_source(cfg.source, fps=cfg.fps, use_depth=cfg.use_depth,
-                                   depth_scale=cfg.depth_scale)
+                                   depth_scale=cfg.depth_scale, topic=cfg.topic)
     session = keys.new_session()  # a restarted source is a new session: never fused into the last one's world
     gate = CreditGate(cfg.credit_ttl_s, session)
     bus.subscribe(keys.topic(cfg.stream, keys.CREDIT), gate.on_credit, expect=[Credit])

@@ -1,6 +1,7 @@
 """Video sources: each yields frames in order as :class:`SourceFrame` (or :class:`BadFrame` for a frame that
 could not be read — the stream goes on). ``open_source(spec)`` picks the right one or raises SourceError
-with a message that says how to fix it.
+with a message that says how to fix it. ROS 2 sources (a ``ros2:`` topic, a bag) are read by
+:mod:`services.ros2.sources`, imported only when asked for.
 """
 from __future__ import annotations
 
@@ -22,6 +23,8 @@ IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pg
 TUM_DEPTH_SCALE = 5000.0  # TUM RGB-D depth PNGs: 16-bit, 5000 units per metre
 ADT_DEPTH_SCALE = 1000.0  # Aria Digital Twin depth PNGs: 16-bit millimetres (z-depth)
 MAX_CONSECUTIVE_FAILURES = 25  # a video that fails this many reads in a row has ended
+ROS_TOPIC_PREFIX = "ros2:"  # ros2:/camera/image_raw: a live ROS 2 image topic over Zenoh
+BAG_SUFFIXES = {".mcap", ".db3"}  # rosbag2 storage files
 
 
 @dataclass(frozen=True)
@@ -188,12 +191,54 @@ def depth_units(root: Path) -> float:
     return TUM_DEPTH_SCALE
 
 
+class RosSource:
+    """ROS 2 images (services/ros2/sources.py): a live topic over Zenoh (``ros2:/camera/image_raw``) or one topic
+    of a recorded bag; each frame stamped with its message's header stamp."""
+
+    def __init__(self, images, name: str, live: bool, fps: float | None = None):
+        self._images, self.name, self.live, self.fps = images, name, live, fps
+
+    def frames(self) -> Iterator[SourceFrame | BadFrame]:
+        from ..ros2.sources import RosImageError
+
+        for item in self._images.images():
+            if isinstance(item, RosImageError):
+                yield BadFrame(item.index, item.reason)
+            else:
+                yield SourceFrame(item.index, item.t_ns, item.rgb)
+
+
+def _ros_topic(spec: str) -> RosSource:
+    from ..ros2.config import Ros2Settings, RosZenohSettings
+    from ..ros2.sources import TopicImages
+
+    topic = spec[len(ROS_TOPIC_PREFIX):]
+    return RosSource(TopicImages(topic, Ros2Settings(), RosZenohSettings()), spec, live=True)
+
+
+def _ros_bag(path: Path, topic: str) -> RosSource:
+    from ..ros2.sources import BagImages
+
+    bag = BagImages(path, topic)
+    return RosSource(bag, f"{path}:{bag.topic}", live=False, fps=bag.fps)
+
+
+def is_ros_bag(path: Path) -> bool:
+    """A rosbag2 recording: one ``.mcap`` / ``.db3`` file, or a folder holding ``metadata.yaml``."""
+    if path.is_dir():
+        return (path / "metadata.yaml").is_file()
+    return path.is_file() and path.suffix.lower() in BAG_SUFFIXES
+
+
 def open_source(spec: str, fps: float | None = None, use_depth: bool = False,
-                depth_scale: float | None = None) -> Source:
+                depth_scale: float | None = None, topic: str = "") -> Source:
     """Open a source from its spec (see IngestSettings.source); ``use_depth`` / ``depth_scale``: sensor depth of
-    an image folder (see :class:`ImageFolderSource`)."""
+    an image folder (see :class:`ImageFolderSource`); ``topic``: the image topic of a ROS 2 bag."""
     if not spec:
-        raise SourceError("no source given: pass a video file, image folder, camera index, URL or synth:")
+        raise SourceError("no source given: pass a video file, image folder, camera index, URL, ROS 2 bag, "
+                          "ros2:/TOPIC or synth:")
+    if spec.startswith(ROS_TOPIC_PREFIX):
+        return _ros_topic(spec)
     if spec.startswith("synth:"):
         from ..synth.spec import spec_options
         from .synth_source import SynthSource  # the renderer is only loaded when asked for
@@ -208,6 +253,8 @@ def open_source(spec: str, fps: float | None = None, use_depth: bool = False,
     if "://" in spec:
         return CaptureSource(spec, spec, live=True)
     path = Path(spec).expanduser()
+    if is_ros_bag(path):
+        return _ros_bag(path, topic)
     if path.is_dir():
         return ImageFolderSource(path, fps=fps, use_depth=use_depth, depth_scale=depth_scale)
     if path.is_file():

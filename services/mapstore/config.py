@@ -1,7 +1,8 @@
 """Parameters of the map core (frozen dataclasses) and the service settings.
 
 Algorithm parameters are plain frozen dataclasses so the pure core can take them without
-importing pydantic; `MapstoreSettings` (env prefix ``KMVIPE_MAPSTORE_``) builds them once.
+importing pydantic; `MapstoreSettings` (env prefix ``KMVIPE_MAPSTORE_``, or ``[mapstore]`` of the ``KMVIPE_CONFIG``
+file) builds them once.
 """
 
 from __future__ import annotations
@@ -9,8 +10,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic import Field
+from pydantic_settings import SettingsConfigDict
 
+from ..common.config_file import KmVipeSettings
 from ..common.keys import ALL_STREAMS
 
 
@@ -139,7 +142,7 @@ class MapParams:
     scoring: ScoreParams = field(default_factory=ScoreParams)
 
 
-class MapstoreSettings(BaseSettings):
+class MapstoreSettings(KmVipeSettings):
     """Settings of the mapstore service (env prefix ``KMVIPE_MAPSTORE_``)."""
 
     model_config = SettingsConfigDict(env_prefix="KMVIPE_MAPSTORE_", env_file=".env", extra="ignore")
@@ -182,6 +185,11 @@ class MapstoreSettings(BaseSettings):
     """torch device for scoring."""
     store_images: bool = True
     """Keep each keyframe's working image (JPEG) for exports."""
+    thumbnail_side: int = Field(160, ge=0, le=1024)
+    """Longest side (px) of the small JPEG kept per keyframe for the viewer's keyframe strip and query by region
+    (``map/keyframe``); a few kB each at 160 (5.3 kB for a 128×96 synthetic keyframe). 0: none kept."""
+    thumbnail_quality: int = Field(80, ge=1, le=100)
+    """JPEG quality of the thumbnails."""
     export_dir: str = ""
     """When set, write map.ply, depth maps and COLMAP cameras here at end of stream."""
     upstream: str = "ba"

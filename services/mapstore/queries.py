@@ -15,12 +15,18 @@ Voxels that only keyframes whose codes have not arrived saw have no code: they a
 from __future__ import annotations
 
 import dataclasses
+import threading
 import time
+import weakref
+from collections import OrderedDict
+from typing import NamedTuple
 
 import numpy as np
 
 from services.common.schema import MapAnswer, MapChunk, MapQuery, MapSegment, MapStats, Poses, decode
-from services.mapstore.core.regions import find_regions
+from services.mapstore.config import RegionParams
+from services.mapstore.core.regions import regions_of
+from services.mapstore.core.scoring import best_of
 from services.mapstore.state import MapState
 
 DEFAULT_CHUNK = 100_000
@@ -37,36 +43,99 @@ def _check_space(state: MapState, q: MapQuery) -> None:
         raise ValueError(f"query vectors are in '{q.space}' but this map's features are in '{space}'")
 
 
+class _Found(NamedTuple):
+    """What one query vector found: its regions (without their voxel lists, which the answer does not carry)
+    and its top points (indices into the fused map)."""
+
+    regions: list[tuple[float, np.ndarray, np.ndarray, np.ndarray, int]]  # score, centroid, box min/max, count
+    top_idx: np.ndarray  # (k,) int64, best first
+    top_score: np.ndarray  # (k,) float32
+
+
 def query(state: MapState, q: MapQuery) -> MapAnswer:
+    """Regions and top points of each query vector (the ``map/query`` verb); the caller holds ``state.lock``.
+
+    The vectors not answered from the cache are scored together, once against every point (exact cosine, see
+    ScoringIndex); each one's threshold, top points and regions are then taken from its score vector, reading
+    only the points above the threshold. A vector asked again (same options) on the same map revision is
+    answered from a small cache (``ANSWER_CACHE`` vectors).
+    """
     _check_space(state, q)
     index = state.index()
     fused = state.map.fused()
-    scores = index.score(q.vectors)
-    top = index.topk(q.vectors, q.top_k) if index.n_valid else None
-    params = state.map.params.regions
-    rows: list[tuple] = []
-    for qi, s in enumerate(scores):
-        threshold = q.threshold
-        if threshold < 0:
-            scored = s[np.isfinite(s)]  # voxels without codes (NaN) take no part
-            threshold = params.score_threshold
-            if params.relative_threshold > 0 and scored.size:
-                threshold = params.relative_threshold * float(scored.max())
-        found = find_regions(fused.ijk, fused.xyz, s, dataclasses.replace(params, score_threshold=threshold,
-                                                                          max_regions=q.max_regions))
-        rows += [(qi, r.score, r.centroid, r.box_min, r.box_max, r.count) for r in found]
+    params = dataclasses.replace(state.map.params.regions, max_regions=q.max_regions)
+    vectors = np.ascontiguousarray(q.vectors, np.float32)
+    keys = [None if q.with_points else (v.tobytes(), q.space, q.top_k, q.threshold, params) for v in vectors]
+    found: list[_Found | None] = [_cached(index, fused, key) for key in keys]
+    todo = [i for i, f in enumerate(found) if f is None]
+    all_scores = None
+    if todo:
+        scores = index.score(vectors[todo])
+        k = min(q.top_k, index.n_valid)
+        for i, s in zip(todo, scores):
+            sel = np.flatnonzero(s >= _threshold(s, q.threshold, params))  # NaN (no code) is never selected
+            regions = [(r.score, r.centroid, r.box_min, r.box_max, r.count)
+                       for r in regions_of(fused.ijk, fused.xyz, sel, s[sel], params)]
+            found[i] = _Found(regions, *best_of(s, k, above=sel))
+            _remember(index, fused, keys[i], found[i])
+        all_scores = scores if q.with_points else None  # with_points: every vector is in todo
+    return _answer(q, fused, found, all_scores)
+
+
+def _threshold(s: np.ndarray, asked: float, params: RegionParams) -> float:
+    """The region threshold of one score vector: the query's, else relative to the best finite score."""
+    if asked >= 0:
+        return asked
+    best = float(np.fmax.reduce(s)) if s.size else float("nan")  # fmax skips NaN (points without codes)
+    if params.relative_threshold > 0 and np.isfinite(best):
+        return params.relative_threshold * best
+    return params.score_threshold
+
+
+def _answer(q: MapQuery, fused, found: list[_Found], all_scores: np.ndarray | None) -> MapAnswer:
+    rows = [(qi, r) for qi, f in enumerate(found) for r in f.regions]
     f4 = lambda values, shape: np.asarray(values, np.float32).reshape(shape)  # noqa: E731
-    n_top = 0 if top is None else top.indices.shape[1]
+    idx = np.concatenate([f.top_idx for f in found]) if found else np.zeros(0, np.int64)
     return MapAnswer(
         q.stream, q.seq, time.time_ns(),
-        region_query=np.array([r[0] for r in rows], np.int32), region_score=f4([r[1] for r in rows], (-1,)),
-        region_centroid=f4([r[2] for r in rows], (-1, 3)), region_box_min=f4([r[3] for r in rows], (-1, 3)),
-        region_box_max=f4([r[4] for r in rows], (-1, 3)), region_count=np.array([r[5] for r in rows], np.int32),
-        point_query=np.repeat(np.arange(len(scores), dtype=np.int32), n_top),
-        point_xyz=f4(fused.xyz[top.indices.ravel()] if top is not None else [], (-1, 3)),
-        point_score=f4(top.scores.ravel() if top is not None else [], (-1,)),
-        all_scores=scores.astype(np.float32) if q.with_points else None, n_points=int(len(fused.keys)),
+        region_query=np.array([qi for qi, _ in rows], np.int32), region_score=f4([r[0] for _, r in rows], (-1,)),
+        region_centroid=f4([r[1] for _, r in rows], (-1, 3)), region_box_min=f4([r[2] for _, r in rows], (-1, 3)),
+        region_box_max=f4([r[3] for _, r in rows], (-1, 3)), region_count=np.array([r[4] for _, r in rows], np.int32),
+        point_query=np.repeat(np.arange(len(found), dtype=np.int32), [len(f.top_idx) for f in found]),
+        point_xyz=f4(np.take(fused.xyz, idx, axis=0), (-1, 3)),
+        point_score=f4(np.concatenate([f.top_score for f in found]) if found else [], (-1,)),
+        all_scores=all_scores, n_points=int(len(fused.keys)),
     )
+
+
+# What recent query vectors found, per scoring index: an index lives for one map revision under one basis, so a
+# result is never reused on a map it was not computed on (the fused map is checked too, by identity).
+ANSWER_CACHE = 256  # query vectors remembered per index (a few KB each)
+_answers: "weakref.WeakKeyDictionary[object, tuple[object, OrderedDict]]" = weakref.WeakKeyDictionary()
+_answers_lock = threading.Lock()
+
+
+def _cached(index, fused, key) -> _Found | None:
+    if key is None:
+        return None
+    with _answers_lock:
+        entry = _answers.get(index)
+        if entry is None or entry[0] is not fused or key not in entry[1]:
+            return None
+        entry[1].move_to_end(key)
+        return entry[1][key]
+
+
+def _remember(index, fused, key, result: _Found) -> None:
+    if key is None or ANSWER_CACHE <= 0:
+        return
+    with _answers_lock:
+        entry = _answers.get(index)
+        if entry is None or entry[0] is not fused:
+            entry = _answers[index] = (fused, OrderedDict())
+        entry[1][key] = result
+        while len(entry[1]) > ANSWER_CACHE:
+            entry[1].popitem(last=False)
 
 
 def segment(state: MapState, q: MapQuery) -> MapSegment:
@@ -110,4 +179,9 @@ def answer(state: MapState, stream: str, key: str, params: dict, payload: bytes 
         seqs, stamps, poses = state.trajectory()
         return Poses(stream, len(seqs), time.time_ns(), frame_seqs=seqs, stamps_ns=stamps, poses=poses,
                      session=state.session).encode()
-    raise KeyError(f"unknown map verb {verb!r}; known: query, segment, export, stats, trajectory")
+    from services.mapstore import keyframe_queries  # here: it builds on this module's `query`
+
+    if verb in keyframe_queries.VERBS:  # thumbnails and query by keyframe region; they take the lock themselves
+        return keyframe_queries.answer(state, stream, verb, params, payload)
+    raise KeyError(f"unknown map verb {verb!r}; known: query, segment, export, stats, trajectory, "
+                   f"{', '.join(keyframe_queries.VERBS)}")

@@ -31,7 +31,7 @@ from services.common.restarts import consumer_name
 from services.common.streams import session_of
 from services.common.schema import (Credit, Eos, Graph, Keyframe, KeyframeCodes, Message, PcaBasis as PcaMessage,
                                     Poses, decode)
-from services.mapstore import queries
+from services.mapstore.archive import ArchivedMaps
 from services.mapstore.config import MapstoreSettings
 from services.mapstore.core.keyframe import KeyframeDepth
 from services.mapstore.core.scoring import PcaBasis
@@ -209,7 +209,9 @@ def run(cfg: MapstoreSettings, bus: Bus, stop: threading.Event, state: MapState 
                       lossless=True, droppable=())  # every kind is essential: credit bounds the queue, not drops
     consumer = consumer_name("mapstore", bus.instance)  # a new name per start: features sees a restart
     bus.subscribe(topic(keys.POSE), lambda d: state.pose_log.add(d.msg), [Poses])  # the closure follows rebinding
-    bus.serve(keys.map_key(cfg.stream, "**"), lambda key, params, payload: queries.answer(state, cfg.stream, key, params, payload))
+    archives = ArchivedMaps(cfg)  # earlier sessions' maps, served with ?session=<id>
+    bus.serve(keys.map_key(cfg.stream, "**"),
+              lambda key, params, payload: archives.answer(state, cfg.stream, key, params, payload))
     bus.ready()
     _fetch_current_basis(state, bus, cfg)
     for version in _held_versions(state):
@@ -247,4 +249,5 @@ def run(cfg: MapstoreSettings, bus: Bus, stop: threading.Event, state: MapState 
             for key, out in _guarded(finish_stream, state, held, cfg):
                 bus.publish(key, out)
     state.pose_log.flush(state.store)
+    archives.close()
     return state

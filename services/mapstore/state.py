@@ -47,10 +47,22 @@ from services.mapstore.core.map import KeyframeMap, code_maps_to_latest
 from services.mapstore.core.scoring import PcaBasis, ScoringIndex
 from services.mapstore.poselog import PoseLog
 from services.mapstore.sessions import archive_other_session
-from services.mapstore.store import MapStore
+from services.mapstore.store import MapStore, Thumbnail
 
 log = logging.getLogger(__name__)
 RESTART_PAGE = 64  # keyframes read from the store at a time when a restart streams them
+
+
+def make_thumbnail(image: np.ndarray, side: int, quality: int) -> Thumbnail | None:
+    """(H, W, 3) uint8 RGB → JPEG with longest side ``side`` (never enlarged); None when ``side`` is 0."""
+    if side <= 0:
+        return None
+    h, w = image.shape[:2]
+    scale = min(1.0, side / max(h, w))
+    size = (max(1, round(w * scale)), max(1, round(h * scale)))
+    small = cv2.resize(image, size, interpolation=cv2.INTER_AREA) if scale < 1.0 else image
+    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(small, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, quality])
+    return Thumbnail(buf.tobytes(), size[0], size[1]) if ok else None
 
 
 class MapState:
@@ -156,6 +168,7 @@ class MapState:
         if self.cfg.store_images:
             ok, buf = cv2.imencode(".jpg", cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
             jpeg = buf.tobytes() if ok else None
+        thumbnail = make_thumbnail(image, self.cfg.thumbnail_side, self.cfg.thumbnail_quality)
         with self.lock:
             if self.map.is_folded(kf_id):  # a repeat of a keyframe folded long ago: it is final
                 log.info("keyframe already folded: ignored", extra={"stream": self.cfg.stream, "seq": kf_id})
@@ -172,7 +185,7 @@ class MapState:
                 codes, pca_version = (old.codes, old.pca_version) if keep else (None, -1)
             codes = None if codes is None else np.asarray(codes).astype(np.float16)
             content = KeyframeContent(kf_id, t_ns, codes, colours, image.shape[:2], pca_version)
-            self.store.put_keyframe(content, intrinsics, jpeg, realtime)
+            self.store.put_keyframe(content, intrinsics, jpeg, realtime, thumbnail)
             self.intrinsics[kf_id] = np.asarray(intrinsics, np.float64)
             if realtime:
                 self.realtime.add(kf_id)

@@ -67,6 +67,11 @@ MIGRATIONS: list[str] = [
     CREATE TABLE frame_poses (seq INTEGER PRIMARY KEY, t_ns INTEGER NOT NULL, world_from_cam BLOB NOT NULL,
         mapped INTEGER NOT NULL DEFAULT 0);
     """,
+    # 6: a small JPEG per keyframe (longest side ``thumbnail_side``): the viewer's keyframe strip, query by region
+    """
+    CREATE TABLE thumbnails (kf_id INTEGER PRIMARY KEY, width INTEGER NOT NULL, height INTEGER NOT NULL,
+        jpeg BLOB NOT NULL);
+    """,
 ]
 SCHEMA_VERSION = len(MIGRATIONS)
 
@@ -133,6 +138,23 @@ class StoredKeyframe(NamedTuple):
     folded: int | None  # None: live; else the fold mode (2 with codes, 1 geometry only, 0 nothing)
 
 
+class KeyframeRow(NamedTuple):
+    """One row of `MapStore.keyframe_index`."""
+
+    kf_id: int
+    t_ns: int
+    width: int  # working image, pixels
+    height: int
+    pca_version: int  # of its codes; -1: no codes stored
+    has_thumbnail: bool
+
+
+class Thumbnail(NamedTuple):
+    jpeg: bytes
+    width: int
+    height: int
+
+
 class MapStore:
     """The map database. Every `put_*` is one transaction: when it returns, the data is durable."""
 
@@ -175,9 +197,9 @@ class MapStore:
         return changed
 
     def put_keyframe(self, content: KeyframeContent, intrinsics: np.ndarray, jpeg: bytes | None = None,
-                     realtime: bool = False) -> None:
-        """Store a keyframe's codes (or none yet), colours, arrival intrinsics (4,), optional JPEG image, and
-        whether it came from a real-time stream."""
+                     realtime: bool = False, thumbnail: Thumbnail | None = None) -> None:
+        """Store a keyframe's codes (or none yet), colours, arrival intrinsics (4,), optional JPEG image and
+        thumbnail, and whether it came from a real-time stream."""
         h, w = content.image_hw
         rows = [("INSERT OR REPLACE INTO keyframes (kf_id, t_ns, pca_version, height, width, codes, colours, "
                  "intrinsics, realtime) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
@@ -185,6 +207,9 @@ class MapStore:
                   to_blob(content.colours), to_blob(np.asarray(intrinsics, np.float64)), int(realtime)))]
         if jpeg is not None:
             rows.append(("INSERT OR REPLACE INTO images (kf_id, jpeg) VALUES (?, ?)", (content.kf_id, jpeg)))
+        if thumbnail is not None:
+            rows.append(("INSERT OR REPLACE INTO thumbnails (kf_id, width, height, jpeg) VALUES (?, ?, ?, ?)",
+                         (content.kf_id, thumbnail.width, thumbnail.height, thumbnail.jpeg)))
         self._write(rows)
 
     def put_codes(self, kf_id: int, pca_version: int, codes: np.ndarray) -> None:
@@ -247,7 +272,7 @@ class MapStore:
     def delete_keyframe(self, kf_id: int) -> None:
         """Remove a keyframe and everything stored about it."""
         self._write([(f"DELETE FROM {t} WHERE kf_id = ?", (kf_id,))
-                     for t in ("keyframes", "depths", "poses", "images", "folded")])
+                     for t in ("keyframes", "depths", "poses", "images", "folded", "thumbnails")])
 
     def keyframe_ids(self) -> list[int]:
         """Ids of the committed keyframes, ascending."""
@@ -257,6 +282,32 @@ class MapStore:
         """The keyframe's JPEG image, if it was stored."""
         row = self._conn.execute("SELECT jpeg FROM images WHERE kf_id = ?", (kf_id,)).fetchone()
         return None if row is None else bytes(row[0])
+
+    def keyframe_index(self) -> list[KeyframeRow]:
+        """Every stored keyframe (folded ones too), ascending id, without reading any array."""
+        with self._lock:
+            rows = self._conn.execute(
+                "SELECT k.kf_id, k.t_ns, k.width, k.height, CASE WHEN k.codes IS NULL THEN -1 ELSE k.pca_version END, "
+                "t.kf_id IS NOT NULL FROM keyframes k LEFT JOIN thumbnails t ON t.kf_id = k.kf_id ORDER BY k.kf_id"
+            ).fetchall()
+        return [KeyframeRow(r[0], r[1], r[2], r[3], r[4], bool(r[5])) for r in rows]
+
+    def thumbnail(self, kf_id: int) -> Thumbnail | None:
+        """The keyframe's thumbnail, if one was stored."""
+        with self._lock:
+            row = self._conn.execute("SELECT jpeg, width, height FROM thumbnails WHERE kf_id = ?",
+                                     (int(kf_id),)).fetchone()
+        return None if row is None else Thumbnail(bytes(row[0]), int(row[1]), int(row[2]))
+
+    def keyframe_codes(self, kf_id: int) -> tuple[int, np.ndarray | None]:
+        """(pca_version, (h, w, K) codes) of a stored keyframe; (-1, None) before its codes come. LookupError if
+        the keyframe is not stored. Read from the database: folded keyframes' codes are no longer in memory."""
+        with self._lock:
+            row = self._conn.execute("SELECT pca_version, codes FROM keyframes WHERE kf_id = ?",
+                                     (int(kf_id),)).fetchone()
+        if row is None:
+            raise LookupError(f"keyframe {kf_id} is not stored")
+        return (int(row[0]), from_blob(row[1])) if row[1] is not None else (-1, None)
 
     def load_static(self) -> StoredMap:
         """The bases and metadata only (no keyframes: `iter_keyframes` streams those)."""

@@ -13,6 +13,7 @@ from fastapi.staticfiles import StaticFiles
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
 from ..common.errors import ServiceTimeout
+from .api.keyframes import router as keyframes_router
 from .api.middleware import BodyLimit, Metrics, MetricsMiddleware
 from .api.routes import public, router
 from .config import QuerySettings
@@ -49,6 +50,7 @@ def create_app(cfg: QuerySettings, gateway: Gateway) -> FastAPI:
                   description="Ask the live semantic map of each camera stream in natural language or by example.")
     app.state.settings, app.state.gateway, app.state.metrics = cfg, gateway, Metrics()
     app.include_router(router, dependencies=[Depends(_require_key)])
+    app.include_router(keyframes_router, dependencies=[Depends(_require_key)])
     app.include_router(public)
     for exc_type, (status, prefix) in ERROR_STATUS.items():
         app.add_exception_handler(exc_type, _handler(status, prefix))

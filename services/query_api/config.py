@@ -1,16 +1,18 @@
-"""Settings of the query gateway (env prefix ``KMVIPE_QUERY_``), built once at start."""
+"""Settings of the query gateway (env prefix ``KMVIPE_QUERY_``, or ``[query]`` of the ``KMVIPE_CONFIG`` file), built
+once at start."""
 from __future__ import annotations
 
 from pathlib import Path
 from typing import Literal
 
 from pydantic import Field
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import SettingsConfigDict
 
+from ..common.config_file import KmVipeSettings
 from .core.text import DEFAULT_TEMPLATES
 
 
-class QuerySettings(BaseSettings):
+class QuerySettings(KmVipeSettings):
     model_config = SettingsConfigDict(env_prefix="KMVIPE_QUERY_", env_file=".env", extra="ignore")
 
     host: str = "127.0.0.1"
@@ -50,7 +52,9 @@ class QuerySettings(BaseSettings):
     text_head: str = "talk2dino-vitb"
     """Registry name of the text head (decides the backbone space text queries land in)."""
     templates: list[str] = list(DEFAULT_TEMPLATES)
-    """Prompt templates (each with ``{label}``); the embeddings of all templates are averaged."""
+    """Prompt templates (each with ``{label}``). Default: the seven Talk2DINO evaluates with (its
+    ``sub_imagenet_template``); a label's CLIP embeddings over all templates are averaged before the head, as
+    upstream. A single prompt is a one-item list, e.g. ``'["There is {label} in the scene"]'``."""
     embedding_cache: int = Field(4096, ge=1)
     """Labels whose embeddings are kept (LRU)."""
     oracle_vectors: Path | None = None

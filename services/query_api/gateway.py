@@ -52,7 +52,7 @@ class Gateway:
         self._poses: dict[str, PoseBook] = {}  # the current session's trajectory of each stream
         self._pose_sessions: dict[str, str] = {}
         self._poses_lock = threading.Lock()
-        self._spaces: dict[str, tuple[float, str]] = {}  # stream → (monotonic time, backbone space)
+        self._spaces: dict[tuple[str, str], tuple[float, str]] = {}  # (stream, session) → (time, backbone space)
         self._spaces_lock = threading.Lock()
         bus.subscribe(keys.topic("*", keys.POSE), self._on_pose, expect=[Poses])
 
@@ -98,38 +98,45 @@ class Gateway:
             return {s: len(b) for s, b in self._poses.items()}
 
     # -- queries ----------------------------------------------------------------------------------------
-    def ask(self, stream: str, vectors: np.ndarray, space: str, opts: QueryOptions) -> Answer:
-        """Score (Q, D) vectors in ``space`` against the map of ``stream``."""
-        ans: MapAnswer = self.maps.query(stream, vectors, space, opts)
+    def ask(self, stream: str, vectors: np.ndarray, space: str, opts: QueryOptions, session: str = "") -> Answer:
+        """Score (Q, D) vectors in ``space`` against the map of ``stream`` (of an earlier ``session``'s map)."""
+        ans: MapAnswer = self.maps.query(stream, vectors, space, opts, session)
         results = group_answer(len(vectors), ans.region_query, ans.region_score, ans.region_centroid,
                                ans.region_box_min, ans.region_box_max, ans.region_count, ans.point_query,
                                ans.point_xyz, ans.point_score, RegionParams())
         return Answer(results, space, int(ans.n_points), ans.all_scores)
 
-    def map_space(self, stream: str) -> str:
+    def map_space(self, stream: str, session: str = "") -> str:
         """The map's backbone space (from its stats, remembered for ``cfg.space_cache_s``)."""
         now = time.monotonic()
         with self._spaces_lock:
-            hit = self._spaces.get(stream)
+            hit = self._spaces.get((stream, session))
         if hit is not None and now - hit[0] < self.cfg.space_cache_s:
             return hit[1]
-        space = self.maps.stats(stream).backbone
+        space = self.maps.stats(stream, session).backbone
         with self._spaces_lock:
-            self._spaces[stream] = (now, space)
+            self._spaces[(stream, session)] = (now, space)
         return space
 
-    def text_vectors(self, stream: str, texts: list[str]) -> tuple[np.ndarray, str]:
+    def text_vectors(self, stream: str, texts: list[str], session: str = "") -> tuple[np.ndarray, str]:
         """(Q, D) vectors of ``texts`` in the map's space."""
-        space = self.map_space(stream)
+        space = self.map_space(stream, session)
         return self.text.embed(texts, space), space
 
-    def query_text(self, stream: str, texts: list[str], opts: QueryOptions) -> Answer:
-        vectors, space = self.text_vectors(stream, texts)
-        return self.ask(stream, vectors, space, opts)
+    def query_text(self, stream: str, texts: list[str], opts: QueryOptions, session: str = "") -> Answer:
+        vectors, space = self.text_vectors(stream, texts, session)
+        return self.ask(stream, vectors, space, opts, session)
 
-    def segment(self, stream: str, texts: list[str]) -> MapSegment:
-        vectors, space = self.text_vectors(stream, texts)
-        return self.maps.segment(stream, vectors, space)
+    def segment(self, stream: str, texts: list[str], session: str = "") -> MapSegment:
+        vectors, space = self.text_vectors(stream, texts, session)
+        return self.maps.segment(stream, vectors, space, session)
+
+    def session_trajectory(self, stream: str, session: str) -> Trajectory | None:
+        """The trajectory the mapstore recorded for an earlier ``session`` of the stream (its map's world frame)."""
+        stored = self.maps.trajectory(stream, session)
+        book = PoseBook()
+        book.update(stored.frame_seqs, stored.stamps_ns, stored.poses)
+        return book.trajectory() if len(book) else None
 
     def query_example(self, stream: str, image: np.ndarray, box=None, mask=None, opts=QueryOptions()) -> Answer:
         """Image (H, W, 3) uint8 RGB and a pixel box (x0, y0, x1, y1) or (H, W) bool mask → the answer."""

@@ -15,12 +15,14 @@ import zenoh
 
 from ..common import keys
 from ..common.bus import Bus
-from ..common.errors import DecodeError, KmVipeError, ServiceTimeout
-from ..common.schema import MapAnswer, MapChunk, MapQuery, MapSegment, MapStats, Message, Poses, decode
+from ..common.errors import DecodeError, KmVipeError, ServiceTimeout, UnknownSession
+from ..common.schema import (MapAnswer, MapChunk, MapQuery, MapSegment, MapSessions, MapStats, Message, Poses,
+                             decode)
 
 log = logging.getLogger(__name__)
 MAPSTORE = "mapstore"
 ZENOH_TIMEOUT = "Timeout"  # the error reply Zenoh itself sends when a query times out
+UNKNOWN_SESSION = f"{UnknownSession.__name__}:"  # the error reply of a map service for a session it keeps no map of
 
 
 class StreamNotFound(KmVipeError):
@@ -33,6 +35,13 @@ class StreamNotFound(KmVipeError):
 
 class MapServiceError(KmVipeError):
     """The mapstore answered with an error, or with a payload that is not the expected message."""
+
+
+class SessionNotFound(StreamNotFound):
+    """The stream's mapstore keeps no map of the session asked for (the message lists the ones it keeps)."""
+
+    def __init__(self, message: str):
+        KmVipeError.__init__(self, message)
 
 
 @dataclass(frozen=True)
@@ -53,7 +62,10 @@ class MapClient:
         self.bus, self.timeout_s = bus, timeout_s
         self._request_ids = itertools.count(1)  # thread-safe under the GIL
 
-    def _ask(self, stream: str, verb: str, payload: bytes | None, expect: type[Message], params: str = "") -> Message:
+    def _ask(self, stream: str, verb: str, payload: bytes | None, expect: type[Message], params: str = "",
+             session: str = "") -> Message:
+        """``session``: an earlier session's map (its archive) instead of the current one."""
+        params = ";".join(p for p in (params, f"session={session}" if session else "") if p)
         selector = keys.map_key(stream, verb) + (f"?{params}" if params else "")
         started = time.monotonic()
         errors = []
@@ -67,6 +79,8 @@ class MapClient:
                 raise MapServiceError(f"{MAPSTORE} sent a bad {verb} reply for stream '{stream}': {exc}") from exc
         if errors and any(e != ZENOH_TIMEOUT for e in errors):
             errors = [e for e in errors if e != ZENOH_TIMEOUT]
+            if errors[0].startswith(UNKNOWN_SESSION):
+                raise SessionNotFound(errors[0][len(UNKNOWN_SESSION):].strip())
             raise MapServiceError(f"{MAPSTORE} of stream '{stream}' refused {verb}: {errors[0]}")
         if not errors and time.monotonic() - started < 0.5 * self.timeout_s:
             raise StreamNotFound(stream)
@@ -78,24 +92,31 @@ class MapClient:
                        with_points=opts.with_points)
         return msg.encode()
 
-    def trajectory(self, stream: str) -> Poses:
-        """Every frame pose the mapstore has recorded for the stream's current session."""
-        return self._ask(stream, "trajectory", None, Poses)  # type: ignore[return-value]
+    def trajectory(self, stream: str, session: str = "") -> Poses:
+        """Every frame pose the mapstore has recorded for the stream's current session (or ``session``)."""
+        return self._ask(stream, "trajectory", None, Poses, session=session)  # type: ignore[return-value]
 
-    def stats(self, stream: str) -> MapStats:
-        return self._ask(stream, "stats", None, MapStats)  # type: ignore[return-value]
+    def stats(self, stream: str, session: str = "") -> MapStats:
+        return self._ask(stream, "stats", None, MapStats, session=session)  # type: ignore[return-value]
 
-    def query(self, stream: str, vectors: np.ndarray, space: str, opts: QueryOptions) -> MapAnswer:
+    def sessions(self, stream: str) -> MapSessions:
+        """The stream's current session and the earlier ones whose maps the mapstore keeps."""
+        return self._ask(stream, "sessions", None, MapSessions)  # type: ignore[return-value]
+
+    def query(self, stream: str, vectors: np.ndarray, space: str, opts: QueryOptions, session: str = "") -> MapAnswer:
         """Regions and top points of (Q, D) float32 ``vectors`` living in backbone space ``space``."""
-        return self._ask(stream, "query", self._query(vectors, space, stream, opts), MapAnswer)  # type: ignore
+        return self._ask(stream, "query", self._query(vectors, space, stream, opts), MapAnswer,  # type: ignore
+                         session=session)
 
-    def segment(self, stream: str, vectors: np.ndarray, space: str) -> MapSegment:
+    def segment(self, stream: str, vectors: np.ndarray, space: str, session: str = "") -> MapSegment:
         """Per-point argmax over the (L, D) label vectors."""
-        return self._ask(stream, "segment", self._query(vectors, space, stream, QueryOptions()), MapSegment)  # type: ignore
+        return self._ask(stream, "segment", self._query(vectors, space, stream, QueryOptions()), MapSegment,  # type: ignore
+                         session=session)
 
-    def export_chunk(self, stream: str, index: int, chunk_points: int) -> MapChunk:
+    def export_chunk(self, stream: str, index: int, chunk_points: int, session: str = "") -> MapChunk:
         """Chunk ``index`` of the fused map (``n_chunks`` and ``total_points`` say how many follow)."""
-        return self._ask(stream, "export", None, MapChunk, f"chunk={index};chunk_size={chunk_points}")  # type: ignore
+        return self._ask(stream, "export", None, MapChunk, f"chunk={index};chunk_size={chunk_points}",  # type: ignore
+                         session=session)
 
     def all_stats(self, timeout_s: float | None = None) -> dict[str, MapStats]:
         """Stats of every stream a mapstore serves (replies to ``kmvipe/*/map/stats``), by stream."""

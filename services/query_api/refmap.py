@@ -16,7 +16,8 @@ import torch
 
 from ..common import keys
 from ..common.bus import Bus
-from ..common.schema import MapAnswer, MapChunk, MapQuery, MapSegment, MapStats, decode
+from ..common.errors import UnknownSession
+from ..common.schema import MapAnswer, MapChunk, MapQuery, MapSegment, MapSessions, MapStats, decode
 
 
 @dataclass(frozen=True)
@@ -165,6 +166,12 @@ class RefMap:
     def handle(self, stream: str, key: str, params: dict, payload: bytes | None) -> bytes:
         """The queryable handler (``Bus.serve``)."""
         verb = key.rsplit("/", 1)[-1]
+        if verb == "sessions":  # one map, outside any session
+            return MapSessions(stream, 0, 0, current="", names="", keyframes=np.zeros(0, np.int64),
+                               finished=np.zeros(0, np.uint8)).encode()
+        if params.get("session"):
+            raise UnknownSession(f"stream {stream!r} has no map of session {params['session']!r}; this map has "
+                                 "no sessions")
         with self.lock:
             if verb in ("query", "segment"):
                 q = decode(payload or b"", MapQuery)

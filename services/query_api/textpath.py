@@ -47,6 +47,10 @@ def clip_encoder(cfg: QuerySettings) -> PromptEncoder:
         head = load_text_head(cfg.text_head, store, cfg.device)
     except ModelError as exc:
         raise TextUnavailable(f"text queries need the language models: {exc}") from exc
+    if text_model.dim != head.clip_dim:  # caught here, not as a matrix-size error on the first query
+        raise TextUnavailable(f"the text head '{cfg.text_head}' reads {head.clip_dim}-d CLIP embeddings but "
+                              f"'{cfg.text_model}' writes {text_model.dim}-d ones; install the pair the registry "
+                              f"names: 'kmvipe models pull {cfg.text_model}' and 'kmvipe models pull {cfg.text_head}'")
     entry = get_entry(cfg.text_head)
     return PromptEncoder(text_model, head, cfg.templates, f"{cfg.text_model}+{cfg.text_head}", entry.output_space)
 
@@ -83,6 +87,30 @@ class TextPath:
         if self.cfg.text_encoder == "oracle":
             return oracle_encoder(self.cfg)
         return clip_encoder(self.cfg)
+
+    def availability(self, map_space: str) -> tuple[bool, str]:
+        """Whether text queries can score a map in ``map_space``, and why (or why not). Builds the encoder, so the
+        first call pays for loading it; a load failure is remembered, as for queries."""
+        try:
+            emb = self.embedder()
+        except TextUnavailable as exc:
+            return False, str(exc)
+        name = emb.encoder.name
+        if not map_space:
+            return False, f"the map has no features yet ({name} is ready)"
+        if emb.output_space != map_space:
+            return False, mismatch_message(emb.output_space, map_space, self.cfg.models_dir)
+        if self.is_oracle():
+            return True, ("oracle: the synthetic world's ground-truth label vectors stand in for the language model "
+                          "(a test double, not a learned model)")
+        return True, f"{name} maps text into '{map_space}'"
+
+    def encoder_name(self) -> str:
+        """The loaded encoder's name ("" before it is loaded)."""
+        return self._embedder.encoder.name if self._embedder is not None else ""
+
+    def is_oracle(self) -> bool:
+        return self.cfg.text_encoder == "oracle"
 
     def embed(self, texts: list[str], map_space: str) -> np.ndarray:
         """(Q,) texts → (Q, D) float32 vectors in ``map_space``; SpaceMismatch / TextUnavailable otherwise."""

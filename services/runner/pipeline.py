@@ -13,7 +13,7 @@ import signal
 import sys
 import threading
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -25,10 +25,13 @@ from ..common.bus import Bus, Delivery
 from ..common.config import BusSettings
 from ..common.errors import KmVipeError
 from ..common.schema import Credit, Eos, Frame, Keyframe, Poses
-from ..evaluation.trajectory_io import Trajectory, write_tum
 from . import children as kids
-from .groundtruth import evaluate
+from .outputs import write_live, write_outputs
+from .rerun_log import RerunSettings
+from .rerun_recorder import open_recorder
 from .resources import ResourceMonitor
+from .settings_used import SettingsProbe, child_env, run_settings
+from .semantics import check_models, semantic_profile
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +50,9 @@ class RunSettings:
     port: int = 8000  # the query gateway's HTTP port on 127.0.0.1
     depth: bool = False  # send the source's sensor depth (opt-in: ``kmvipe run --depth``)
     depth_scale: float | None = None  # depth PNG units per metre (None: per dataset, see ingest's depth_units)
+    text: str = "none"  # semantic profile (services/runner/semantics.py): none, talk2dino, oracle (synthetic only)
+    topic: str | None = None  # the bag's (ROS) topic ingest reads (KMVIPE_INGEST_TOPIC); None: ingest's default
+    rerun: RerunSettings | None = None  # record the run to Rerun (services/runner/rerun_log.py); None: no recording
     credit_window: int = 8  # frames the runner lets ingest run ahead when it is the only consumer
     alive_timeout_s: float = 120.0  # model loading can take a while on a cold CPU
     stall_timeout_s: float = 600.0  # no message at all for this long means something hung
@@ -80,10 +86,14 @@ class RunReport:
     ate_first_poses_mapped_pairs: int = 0
     drops: dict[str, int | None] = field(default_factory=dict)  # per stage, from its EOS (None: no EOS came)
     codes_skipped: int | None = None  # features, real time: keyframes the backbone skipped as stale
+    frames_lost: int | None = None  # frames ingest sent that never reached features (Zenoh drops on congestion)
     end_of_stream_s: float | None = None  # ingest's EOS → the last stage's EOS, as the runner saw them
     services: dict[str, dict[str, float]] = field(default_factory=dict)  # cpu_s, cpu_stream_s, rss_peak_mb
     rss_total_peak_mb: float = 0.0  # largest sum over the services of their RSS at one sample
     rss_mb_at_frames: list[dict] = field(default_factory=list)  # {"frames", "t_s", "rss_mb": {service: MB}}
+    queries: dict = field(default_factory=dict)  # which queries the map answers, and why (semantics.QuerySupport)
+    rerun: dict = field(default_factory=dict)  # what the Rerun recording holds (rerun_recorder.RerunRecorder.close)
+    settings: dict = field(default_factory=dict)  # "run": RunSettings; "services": each one's (settings_used.py)
     stopped_by: str | None = None  # the signal (SIGINT, SIGTERM, SIGHUP) that cut the stream short, if one did
     outputs: list[str] = field(default_factory=list)
 
@@ -149,9 +159,12 @@ def absolute_source(source: str) -> str:
 
 
 def absolute_paths(cfg: RunSettings) -> RunSettings:
-    """The same settings with ``out`` and a local ``source`` absolute, against the current working directory:
+    """The same settings with ``out``, a local ``source`` and the Rerun file absolute, against the current directory:
     the services are separate processes, so no relative path may travel to them."""
-    return replace(cfg, out=cfg.out.expanduser().resolve(), source=absolute_source(cfg.source))
+    rerun = cfg.rerun
+    if rerun is not None and rerun.path is not None:
+        rerun = replace(rerun, path=rerun.path.expanduser().resolve())
+    return replace(cfg, out=cfg.out.expanduser().resolve(), source=absolute_source(cfg.source), rerun=rerun)
 
 
 class StopSignals:
@@ -204,8 +217,10 @@ def run_pipeline(cfg: RunSettings, on_outputs: Callable[[RunReport], None] | Non
     built = [name for name in kids.PIPELINE if kids.is_built(name) and name not in cfg.skip]
     if "ingest" not in built:
         raise KmVipeError("the ingest service is missing from this installation (or skipped)")
+    profile = semantic_profile(cfg.text, cfg.source)
+    check_models(profile)  # before any process starts: a missing model ends the run in seconds, saying what to pull
     report = RunReport(cfg.source, cfg.stream, built, [n for n in kids.PIPELINE if not kids.is_built(n)],
-                       services_skipped=list(cfg.skip))
+                       services_skipped=list(cfg.skip), queries=profile.support.as_dict())
     cfg.out.mkdir(parents=True, exist_ok=True)
     endpoint = kids.free_tcp_endpoint()
     observer = _Observer(last_stage=kids.last_connected_stage(built))
@@ -219,12 +234,18 @@ def run_pipeline(cfg: RunSettings, on_outputs: Callable[[RunReport], None] | Non
             seen_at, first_tracked = dict(observer.seen_at), set(observer.first_tracked)
             provisional = set(observer.first_provisional)
         report.provisional_poses = len(provisional)
-        live = _write_live(cfg, first_poses, seen_at, first_tracked, provisional)
-        report.outputs = _write_outputs(cfg, report, poses, first_poses, provisional, live)
+        report.rerun = recorder.close(services_up=not report.stopped_by)  # the map and answers need the services
+        report.settings = {"run": run_settings(cfg), "services": probe.result()}
+        live = write_live(cfg.out, first_poses, seen_at, first_tracked, provisional)
+        live += [report.rerun["path"]] if report.rerun.get("path") else []
+        report.outputs = write_outputs(cfg.out, cfg.source, report, poses, first_poses, provisional, live)
         if on_outputs is not None:
             on_outputs(report)
 
-    with StopSignals() as stop, Bus(BusSettings(mode="router", listen=[endpoint]), "runner") as bus:
+    overrides = {name: child_env(endpoint, _service_env(name, cfg, built)) for name in built}
+    gateway = f"http://127.0.0.1:{cfg.port}" if "query_api" in built else None
+    with StopSignals() as stop, Bus(BusSettings(mode="router", listen=[endpoint]), "runner") as bus, \
+            SettingsProbe(overrides) as probe, open_recorder(cfg.rerun, bus, cfg.stream, gateway) as recorder:
         for topic in (keys.FRAME, keys.KEYFRAME, keys.POSE, keys.EOS):
             bus.subscribe(keys.topic(cfg.stream, topic), observer.on_message)
         bus.ready()
@@ -274,7 +295,7 @@ def _stream(bus: Bus, cfg: RunSettings, built: list[str], endpoint: str, observe
 
 def _service_env(name: str, cfg: RunSettings, built: list[str] = ()) -> dict[str, str]:
     prefix = f"KMVIPE_{name.upper()}_"
-    env = {prefix + "STREAM": cfg.stream}
+    env = {prefix + "STREAM": cfg.stream, **semantic_profile(cfg.text, cfg.source).env.get(name, {})}
     if name == "features":  # its first credit waits for the downstream stages this run starts, no other
         env[prefix + "AWAIT_DOWNSTREAM"] = json.dumps([n for n in ("ba", "mapstore") if n in built])
     if name == "mapstore":
@@ -290,6 +311,8 @@ def _service_env(name: str, cfg: RunSettings, built: list[str] = ()) -> dict[str
         env[prefix + "USE_DEPTH"] = "true" if cfg.depth else "false"
         if cfg.depth_scale is not None:
             env[prefix + "DEPTH_SCALE"] = str(cfg.depth_scale)
+        if cfg.topic:
+            env[prefix + "TOPIC"] = cfg.topic
     return env
 
 
@@ -419,71 +442,10 @@ def _fill_report(report: RunReport, observer: _Observer, monitor: ResourceMonito
                     for stage in STAGES if stage in ran}
     if "features" in observer.eos:
         report.codes_skipped = observer.eos["features"].codes_skipped
+        report.frames_lost = observer.eos["features"].lost
     if "ingest" in observer.eos_at and observer.last_stage in observer.eos_at:
         report.end_of_stream_s = round(observer.eos_at[observer.last_stage] - observer.eos_at["ingest"], 3)
     usage = monitor.report()
     report.services = {name: usage[name] for name in kids.PIPELINE if name in usage}  # in chain order
     report.rss_total_peak_mb = round(monitor.rss_total_peak_mb, 1)
     report.rss_mb_at_frames = list(monitor.series)
-
-
-def _trajectory(poses: dict[int, tuple]) -> Trajectory:
-    """``seq → (..., stamp_ns, pose)`` as a trajectory in seq order."""
-    seqs = sorted(poses)
-    return Trajectory(np.array([poses[s][-2] for s in seqs], np.float64) / 1e9,
-                      np.stack([np.asarray(poses[s][-1], np.float64) for s in seqs]))
-
-
-def _write_live(cfg: RunSettings, first_poses: dict[int, tuple[float, int, object]], seen_at: dict[int, float],
-                first_tracked: set[int], provisional: set[int]) -> list[str]:
-    """What a live consumer saw: ``trajectory_live.txt`` (TUM, each frame's first pose as it was published) and
-    ``frames.csv`` (per frame seen on the bus: its stamp, the latency from the frame to its first pose, and whether
-    tracking or mapping gave that pose; ``provisional``: tracking's rotation-only pose from before the map)."""
-    if not first_poses and not seen_at:
-        return []
-    written = []
-    if first_poses:
-        path = cfg.out / "trajectory_live.txt"
-        write_tum(path, _trajectory(first_poses))
-        written.append(str(path))
-    path = cfg.out / "frames.csv"
-    with path.open("w") as out:
-        out.write("seq,stamp_s,latency_ms,first_pose\n")
-        for seq in sorted(set(seen_at) | set(first_poses)):
-            first = first_poses.get(seq)
-            latency = "" if first is None or seq not in seen_at else f"{max(0.0, first[0] - seen_at[seq]) * 1e3:.1f}"
-            stamp = "" if first is None else f"{first[1] / 1e9:.6f}"
-            source = "" if first is None else ("provisional" if seq in provisional else
-                                               "tracked" if seq in first_tracked else "mapped")
-            out.write(f"{seq},{stamp},{latency},{source}\n")
-    written.append(str(path))
-    return written
-
-
-def _write_outputs(cfg: RunSettings, report: RunReport, poses: dict[int, tuple[int, object]],
-                   first_poses: dict[int, tuple[float, int, object]], provisional: set[int],
-                   also_written: list[str] = ()) -> list[str]:
-    """trajectory.txt (the latest pose of every frame), the ATE of those and of each frame's first pose (what a
-    live consumer saw at the time) when the source has ground truth, and summary.json."""
-    written = []
-    if poses:
-        path = cfg.out / "trajectory.txt"
-        estimate = _trajectory(poses)
-        write_tum(path, estimate)
-        written.append(str(path))
-        live = _trajectory(first_poses)
-        placed = {seq: p for seq, p in first_poses.items() if seq not in provisional}
-        more = [live] + ([_trajectory(placed)] if len(placed) >= 3 and len(placed) < len(first_poses) else [])
-        ate, ate_live, *ate_placed = evaluate(cfg.source, estimate, *more)
-        if ate is not None:
-            report.ate_rmse_sim3, report.ate_pairs = ate.rmse, ate.n_pairs
-        if ate_live is not None:
-            report.ate_first_poses, report.ate_first_poses_pairs = ate_live.rmse, ate_live.n_pairs
-        if ate_placed and ate_placed[0] is not None:
-            report.ate_first_poses_mapped, report.ate_first_poses_mapped_pairs = ate_placed[0].rmse, ate_placed[0].n_pairs
-    written += list(also_written)
-    written += [str(cfg.out / name) for name in ("map.ply", "cameras.txt") if (cfg.out / name).is_file()]
-    summary = cfg.out / "summary.json"
-    summary.write_text(json.dumps(asdict(report) | {"outputs": written + [str(summary)]}, indent=2, default=str))
-    written.append(str(summary))
-    return written

@@ -19,28 +19,19 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from services.common.rotations import rotation_to_quaternion
-
+from services.evaluation import trajectory_io
 from services.synth.render import SynthWorld
 
 log = logging.getLogger(__name__)
 
 TUM_DEPTH_FACTOR = 5000.0  # depth png value per metre, as in the TUM RGB-D benchmark
+TUM_STAMP_DECIMALS = 6  # the TUM RGB-D benchmark's file names: microseconds
 VIDEO_FOURCC = {".mp4": "mp4v", ".avi": "MJPG"}
 
 
 def tum_timestamp(t_ns: int) -> str:
     """Seconds with 6 decimals, e.g. 1500000000 ns -> '1.500000' (exact, no float rounding)."""
-    t_us = int(t_ns) // 1000
-    return f"{t_us // 1_000_000}.{t_us % 1_000_000:06d}"
-
-
-def quaternion_xyzw(rotation: np.ndarray) -> np.ndarray:
-    """Unit quaternion (4,) float64 (qx, qy, qz, qw), qw >= 0, of a rotation matrix (3, 3)."""
-    r = np.asarray(rotation, np.float64)
-    if r.shape != (3, 3):
-        raise ValueError(f"rotation must be (3, 3), got shape {r.shape}")
-    return rotation_to_quaternion(r[None])[0]
+    return trajectory_io.tum_timestamp(t_ns, TUM_STAMP_DECIMALS)
 
 
 def depth_to_png16(depth: np.ndarray) -> np.ndarray:
@@ -58,7 +49,7 @@ def write_image_folder(world: SynthWorld, out_dir: str | Path, n_frames: int | N
     count = len(world) if n_frames is None else min(int(n_frames), len(world))
     rgb_lines = ["# color images", "# timestamp filename"]
     depth_lines = ["# depth maps", f"# timestamp filename (16-bit png, {TUM_DEPTH_FACTOR:g} per metre)"]
-    gt_lines = ["# ground truth trajectory (world_from_cam)", "# timestamp tx ty tz qx qy qz qw"]
+    stamps, poses = [], []
     for i in range(count):
         frame = world.render(i)
         stamp = tum_timestamp(frame.t_ns)
@@ -68,11 +59,12 @@ def write_image_folder(world: SynthWorld, out_dir: str | Path, n_frames: int | N
             raise OSError(f"could not write {out / 'depth' / stamp}.png")
         rgb_lines.append(f"{stamp} rgb/{stamp}.png")
         depth_lines.append(f"{stamp} depth/{stamp}.png")
-        t = frame.world_from_cam[:3, 3]
-        q = quaternion_xyzw(frame.world_from_cam[:3, :3])
-        gt_lines.append(f"{stamp} " + " ".join(f"{x:.9f}" for x in (*t, *q)))
-    for name, lines in (("rgb.txt", rgb_lines), ("depth.txt", depth_lines), ("groundtruth.txt", gt_lines)):
+        stamps.append(stamp)
+        poses.append(frame.world_from_cam)
+    for name, lines in (("rgb.txt", rgb_lines), ("depth.txt", depth_lines)):
         (out / name).write_text("\n".join(lines) + "\n")
+    (out / "groundtruth.txt").write_text(trajectory_io.tum_text(stamps, np.reshape(poses, (-1, 4, 4)),
+                                                                "ground truth, " + trajectory_io.TUM_COMMENT))
     log.info("wrote %d frames to %s", count, out)
     return out
 

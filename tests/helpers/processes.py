@@ -1,12 +1,18 @@
 """The deployed processes in tests: ``kmvipe`` commands started as compose starts them, stopped as docker stop does."""
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
 import subprocess
 import sys
 from pathlib import Path
+from typing import Iterator
+
+import httpx
+
+from services.runner.children import free_tcp_endpoint
 
 KMVIPE = Path(sys.executable).with_name("kmvipe")
 
@@ -51,3 +57,30 @@ def start_services(names: tuple[str, ...], env: dict[str, str], logs: Path, bus)
         stop(list(procs.values()))
         raise
     return procs
+
+
+@contextlib.contextmanager
+def served_run(args: list[str], cwd: Path, env: dict[str, str], timeout_s: float = 300.0) -> Iterator[str]:
+    """``kmvipe ARGS --serve --port P --out out`` (a run or the demo) in ``cwd``: yields the gateway's URL once the
+    stream's outputs are written and the gateway answers; SIGTERM (then SIGKILL) at the end."""
+    from tests.conftest import wait_until
+
+    port = int(free_tcp_endpoint().rsplit(":", 1)[1])
+    proc = subprocess.Popen([str(KMVIPE), *args, "--serve", "--port", str(port), "--out", "out"], cwd=cwd, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        wait_until(lambda: (cwd / "out" / "summary.json").exists() or proc.poll() is not None, timeout_s,
+                   "the run's outputs")
+        assert proc.poll() is None, proc.stdout.read()
+        wait_until(lambda: _answers(url), 60, "the gateway")
+        yield url
+    finally:
+        stop([proc], 60.0)
+
+
+def _answers(url: str) -> bool:
+    try:
+        return httpx.get(f"{url}/v1/health", timeout=2).status_code == 200
+    except httpx.HTTPError:
+        return False

@@ -128,8 +128,9 @@ ENTRIES: tuple[ModelEntry, ...] = (
         output_dim=768,
         input_space="clip_vitb16_text",
         loader="talk2dino_head",
-        description="Talk2DINO ViT-B projection head: CLIP text (512) → DINOv2 ViT-B/14-reg space (768): "
-        "linear 512→768, tanh, linear 768→768.",
+        description="Talk2DINO ViT-B projection head: CLIP text (512, not normalised) → DINOv2 ViT-B/14-reg "
+        "space (768): linear 512→768, tanh, linear 768→768; read from the hub's full model (keys 'proj.*') or "
+        "the head-only weights/vitb_mlp_infonce.pth.",
         hub_alternatives=(
             "https://github.com/lorebianchi98/Talk2DINO/raw/main/weights/vitb_mlp_infonce.pth",
         ),

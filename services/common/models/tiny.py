@@ -69,9 +69,18 @@ def _tiny_head(folder: Path) -> None:
     from safetensors.torch import save_file
 
     head = Talk2DinoHead(clip_dim=TINY_TEXT_DIM, dino_dim=TINY_DIM, n_hidden=1)
-    # stored as in the hub's full model: under a "proj." prefix, beside weights of other sub-models
+    # stored as in the hub's full model (lorebianchi98/Talk2DINO-ViTB model.safetensors, the state of
+    # src/hf_model.py's Talk2DINO): the head under "proj.", beside the other sub-models, which are never read
     state = {f"proj.{k}": v.contiguous() for k, v in head.state_dict().items()}
-    state["clip_model.token_embedding.weight"] = torch.zeros(4, TINY_TEXT_DIM)
+    state.update({
+        "logit_scale": torch.zeros(()),
+        "model.register_tokens": torch.zeros(1, 4, TINY_DIM),
+        "model.blocks.0.mlp.fc1.weight": torch.zeros(2 * TINY_DIM, TINY_DIM),
+        "model.norm.weight": torch.ones(TINY_DIM),
+        "clip_model.token_embedding.weight": torch.zeros(4, TINY_TEXT_DIM),
+        "clip_model.text_projection": torch.zeros(TINY_TEXT_DIM, TINY_TEXT_DIM),
+        "clip_model.visual.proj": torch.zeros(TINY_DIM, TINY_TEXT_DIM),
+    })
     folder.mkdir(parents=True, exist_ok=True)
     save_file(state, str(folder / "model.safetensors"))
 

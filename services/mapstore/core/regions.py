@@ -41,6 +41,50 @@ def _offsets(connectivity: int) -> np.ndarray:
     return np.array([o for o in all_offsets if o > (0, 0, 0)], dtype=np.int64)
 
 
+# Neighbour lookup through a dense table over the voxels' bounding box (one gather per offset) when that box is
+# small enough: for 75k voxels in a 4M-cell box, 2 ms against 20-25 ms for the sorted-key search, at 4 bytes per
+# cell of transient memory. Filling costs ~0.2 ns a cell, searching ~20 ns a voxel (13 offsets x log2 n steps):
+# break-even near 1000 cells a voxel, so sparse sets (a large box for few voxels) keep the search.
+TABLE_MAX_CELLS = 1 << 24  # never more than 64 MB of int32
+TABLE_CELLS_PER_VOXEL = 512  # at most this many cells a voxel ...
+TABLE_MIN_CELLS = 1 << 20  # ... or a box this small, always cheap to fill (< 1 ms)
+
+
+def _neighbour_pairs_sorted(ijk: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(a, b) index pairs of voxels ``b = a + offset``, by binary search in the sorted voxel keys."""
+    n = ijk.shape[0]
+    keys = voxel_keys(ijk)
+    order = np.argsort(keys)
+    sorted_keys = keys[order]
+    src, dst = [], []
+    for off in offsets:
+        # packing is additive, so the neighbours' keys are the sorted keys shifted by a constant: sorted needles
+        # make searchsorted cache-friendly (5-10x faster than looking up unsorted neighbour keys)
+        delta = int(voxel_keys(off[None])[0] - voxel_keys(np.zeros((1, 3), np.int64))[0])
+        nk = sorted_keys + delta
+        pos = np.clip(np.searchsorted(sorted_keys, nk), 0, max(n - 1, 0))
+        hit = np.flatnonzero(sorted_keys[pos] == nk)
+        src.append(order[hit])
+        dst.append(order[pos[hit]])
+    return np.concatenate(src), np.concatenate(dst)
+
+
+def _neighbour_pairs_table(ijk: np.ndarray, offsets: np.ndarray, lo: np.ndarray, dims: np.ndarray):
+    """(a, b) index pairs of voxels ``b = a + offset``, through a table of voxel indices over the box ``lo`` +
+    ``dims`` (which has a one-cell margin, so no neighbour index leaves it)."""
+    rel = ijk - lo
+    lin = (rel[:, 0] * dims[1] + rel[:, 1]) * dims[2] + rel[:, 2]
+    table = np.full(int(np.prod(dims)), -1, np.int32)
+    table[lin] = np.arange(ijk.shape[0], dtype=np.int32)
+    src, dst = [], []
+    for off in offsets:
+        nb = np.take(table, lin + int((off[0] * dims[1] + off[1]) * dims[2] + off[2]))
+        hit = np.flatnonzero(nb >= 0)
+        src.append(hit)
+        dst.append(nb[hit].astype(np.int64))
+    return np.concatenate(src), np.concatenate(dst)
+
+
 def connected_components(ijk: np.ndarray, connectivity: int = 26) -> np.ndarray:
     """Label connected voxels.
 
@@ -48,25 +92,21 @@ def connected_components(ijk: np.ndarray, connectivity: int = 26) -> np.ndarray:
         ijk: (N, 3) int64 distinct voxel coordinates.
         connectivity: 6 or 26.
     Returns:
-        (N,) int64 component label per voxel, labels 0..C−1.
+        (N,) int64 component label per voxel, labels 0..C−1 in order of each component's first voxel.
     """
+    offsets = _offsets(connectivity)
     n = ijk.shape[0]
-    keys = voxel_keys(ijk)
-    order = np.argsort(keys)
-    sorted_keys = keys[order]
-    src, dst = [], []
-    for off in _offsets(connectivity):
-        # packing is additive, so the neighbours' keys are the sorted keys shifted by a constant: sorted needles
-        # make searchsorted cache-friendly (5-10x faster than looking up unsorted neighbour keys)
-        delta = int(voxel_keys(off[None])[0] - voxel_keys(np.zeros((1, 3), np.int64))[0])
-        nk = sorted_keys + delta
-        pos = np.clip(np.searchsorted(sorted_keys, nk), 0, max(n - 1, 0))
-        hit = np.flatnonzero(sorted_keys[pos] == nk) if n else np.zeros(0, np.int64)
-        src.append(order[hit])
-        dst.append(order[pos[hit]])
-    a = np.concatenate(src) if src else np.zeros(0, np.int64)
-    b = np.concatenate(dst) if dst else np.zeros(0, np.int64)
-    # scipy's union-find over the neighbour graph: ~20x faster than label propagation with ufunc.at
+    if n == 0:
+        return np.zeros(0, np.int64)
+    lo = ijk.min(axis=0) - 1
+    dims = ijk.max(axis=0) - lo + 2
+    cells = int(np.prod(dims.astype(np.float64)))
+    if cells <= min(TABLE_MAX_CELLS, TABLE_CELLS_PER_VOXEL * n + TABLE_MIN_CELLS):
+        a, b = _neighbour_pairs_table(ijk.astype(np.int64), offsets, lo, dims)
+    else:
+        a, b = _neighbour_pairs_sorted(ijk, offsets)
+    # scipy's union-find over the neighbour graph: ~20x faster than label propagation with ufunc.at; it numbers
+    # components by their lowest node, whatever the edge order
     graph = coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(n, n)).tocsr()
     _, label = csgraph_components(graph, directed=False)
     return label.astype(np.int64)
@@ -88,18 +128,37 @@ def find_regions(
     if not (ijk.shape[0] == xyz.shape[0] == scores.shape[0]):
         raise ValueError("ijk, xyz and scores must have the same length")
     sel = np.flatnonzero(scores >= params.score_threshold)
+    return regions_of(ijk, xyz, sel, scores[sel], params)
+
+
+def regions_of(ijk: np.ndarray, xyz: np.ndarray, sel: np.ndarray, sel_scores: np.ndarray,
+               params: RegionParams) -> list[Region]:
+    """`find_regions` once the voxels above the threshold are known: only those M voxels are read.
+
+    Args:
+        ijk: (N, 3) int64 voxel coordinates of the map points.
+        xyz: (N, 3) float world positions of the map points.
+        sel: (M,) int64 increasing indices of the voxels at or above the threshold.
+        sel_scores: (M,) float their scores.
+        params: connectivity, minimum size, maximum number (the threshold is already applied).
+    Returns:
+        Regions sorted by mean score, best first (at most params.max_regions).
+    """
+    if sel.shape != sel_scores.shape:
+        raise ValueError(f"sel {sel.shape} and sel_scores {sel_scores.shape} must have the same shape")
     if sel.size == 0:
         return []
-    labels = connected_components(ijk[sel], params.connectivity)
+    # np.take: row gathers 10-20x faster than fancy indexing of (N, 3) arrays
+    labels = connected_components(np.take(ijk, sel, axis=0), params.connectivity)
     # per-component statistics in one pass (reduceat over label-sorted points), no loop over components
     order = np.argsort(labels, kind="stable")
     counts = np.bincount(labels)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    p, sc = xyz[sel[order]], scores[sel[order]]
+    p, sc = np.take(xyz, np.take(sel, order), axis=0), np.take(sel_scores, order)
     mean_score = np.add.reduceat(sc, starts) / counts
-    ranked = [c for c in np.argsort(-mean_score, kind="stable") if counts[c] >= params.min_voxels]
-    ranked = ranked[: params.max_regions]
-    if not ranked:
+    ranked = np.argsort(-mean_score, kind="stable")
+    ranked = ranked[counts[ranked] >= params.min_voxels][: params.max_regions]
+    if not ranked.size:
         return []
     box_min, box_max = np.minimum.reduceat(p, starts, axis=0), np.maximum.reduceat(p, starts, axis=0)
     centroid = np.add.reduceat(p, starts, axis=0) / counts[:, None]

@@ -60,6 +60,33 @@ class TopK(NamedTuple):
 
 
 
+def best_of(scores: np.ndarray, k: int, above: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The k highest finite scores of one query, best first (ties: lower index first).
+
+    Args:
+        scores: (N,) float scores, NaN for points that take no part.
+        k: how many (fewer come back when fewer scores are finite).
+        above: (M,) int64 indices of every point scoring at least some cut, or None. When M >= k the k best are
+            among them (every other point scores below the cut), so only M scores are ranked, not N.
+    Returns:
+        indices (k,) int64 and scores (k,) float32.
+    """
+    pool = above if above is not None and above.size >= k else None
+    vals = scores if pool is None else scores[pool]
+    k = min(k, int(vals.size))
+    if k <= 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.float32)
+    # the k-th best value (partition sorts NaN last, so on −scores the k smallest are the k best finite ones),
+    # then every point at least as good, so that ties at the k-th value are broken by index, not by partition
+    kth = -np.partition(-vals, k - 1)[k - 1] if k < vals.size else np.nan
+    if np.isnan(kth):  # k reaches past the finite scores: all of them
+        kth = np.fmin.reduce(vals)
+    part = np.flatnonzero(vals >= kth)  # increasing: the stable sort below keeps lower indices first
+    part = part[np.argsort(-vals[part], kind="stable")][:k]
+    idx = part if pool is None else pool[part]
+    return idx.astype(np.int64), np.asarray(scores[idx], np.float32)
+
+
 def decode_codes(codes: np.ndarray, basis: PcaBasis) -> np.ndarray:
     """Reference decoder: (N, K) codes → (N, D) float64 features μ + Vᵀz."""
     return basis.mean.astype(np.float64) + codes.astype(np.float64) @ basis.components.astype(np.float64)
@@ -93,6 +120,7 @@ class ScoringIndex:
         z = np.where(ok[:, None], z, 0.0)
         self.n_valid = int(ok.sum())
         self._absent = None if ok.all() else torch.from_numpy(~ok).to(self.device)
+        self._absent_idx = np.flatnonzero(~ok)  # few in practice: NaN is written only there (score)
         norm2 = mu @ mu + 2.0 * z @ (v @ mu) + np.einsum("nk,kl,nl->n", z, v @ v.T, z)
         inv = 1.0 / np.sqrt(np.maximum(norm2, _EPS))
         a = np.concatenate([z * inv[:, None], inv[:, None]], axis=1).astype(np.float32)
@@ -116,16 +144,23 @@ class ScoringIndex:
     def score(self, queries: np.ndarray) -> np.ndarray:
         """Cosine scores of every point for each query.
 
+        One matrix-vector product of the (N, K+1) per-point terms per query, then NaN written at the points
+        without a code (no masking pass over N). Per query rather than one (Q, K+1)·(K+1, N) product: with K+1
+        columns that product takes 3-10x longer than Q products on CPU (measured with torch 2.x on 2 cores).
+
         Args:
             queries: (Q, D) or (D,) float query vectors in backbone space.
         Returns:
-            (Q, N) float32 cosine similarities.
+            (Q, N) float32 cosine similarities (a fresh, writable array), NaN for points without a code.
         """
         b = self._query_terms(queries)
-        s = b @ self._a.T
-        if self._absent is not None:
-            s = s.masked_fill(self._absent[None], float("nan"))
-        return s.cpu().numpy()
+        s = torch.empty((b.shape[0], len(self)), dtype=self._a.dtype, device=self.device)
+        for i in range(b.shape[0]):
+            torch.mv(self._a, b[i], out=s[i])
+        s = s.cpu().numpy()
+        if self._absent_idx.size:
+            s[:, self._absent_idx] = np.nan
+        return s
 
     def _blocks(self, queries: np.ndarray, chunk: int):
         """(start, (Q, n) scores of points start..start+n); points without a code score −inf here."""

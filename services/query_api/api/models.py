@@ -72,6 +72,10 @@ class QueryResponse(BaseModel):
     stream: str
     n_points: int = Field(description="Points in the map when it was scored.")
     space: str = Field(description="Embedding space the query vectors were scored in (the map's backbone).")
+    encoder: str = Field("", description="What made the query vectors: the text encoder (e.g. "
+                         "clip-vitb16-text+talk2dino-vitb, oracle) or 'example'.")
+    oracle: bool = Field(False, description="The text vectors are the synthetic world's ground-truth label "
+                         "vectors (a test double), not a language model's.")
     results: list[TextResult]
     point_scores: Optional[list[list[float]]] = Field(None, description="(texts × points) scores, map order.")
 
@@ -136,11 +140,36 @@ class MapInfo(BaseModel):
     session: str = ""  # the session this map is of
 
 
+class QuerySupport(BaseModel):
+    """Which queries this stream's map answers now, each with the reason (or what to do about it)."""
+
+    text: bool
+    text_why: str
+    example: bool
+    example_why: str
+    oracle: bool = Field(False, description="Text vectors come from the synthetic world's ground truth (a test "
+                         "double), not from a language model.")
+
+
 class StreamInfo(BaseModel):
     name: str
     map: Optional[MapInfo]
     poses: int
+    queries: Optional[QuerySupport] = None
     session: str = ""  # the stream's current session (a restarted publisher opens a new one): poses and map are its
+
+
+class SessionInfo(BaseModel):
+    session: str
+    keyframes: int
+    finished: bool = Field(description="The session's stream ended: its map is complete.")
+    current: bool
+
+
+class SessionsResponse(BaseModel):
+    stream: str
+    current: str
+    sessions: list[SessionInfo]
 
 
 class StreamsResponse(BaseModel):

@@ -22,6 +22,8 @@ from . import models as m
 from .streaming import ply_stream
 
 STREAM = Path(description="Stream name (the <s> in kmvipe/<s>/...).", examples=["cam0"])
+SESSION = Query("", pattern=r"^[A-Za-z0-9_\-]{0,64}$", description="An earlier session of the stream (GET "
+                ".../sessions lists them): its own map, in its own world frame. Empty: the current session.")
 ERRORS = {code: {"model": m.ErrorResponse} for code in (401, 404, 409, 413, 422, 502, 503, 504)}
 router = APIRouter(prefix="/v1", responses=ERRORS)
 public = APIRouter(prefix="/v1")
@@ -59,7 +61,8 @@ def _options(request: Request, top_k: int, threshold, max_regions: int, with_poi
     return QueryOptions(top_k, -1.0 if threshold is None else float(threshold), max_regions, with_points)
 
 
-def _answer_out(stream: str, texts: list[str], ans: Answer) -> m.QueryResponse:
+def _answer_out(stream: str, texts: list[str], ans: Answer, encoder: str = "example",
+                oracle: bool = False) -> m.QueryResponse:
     results = [m.TextResult(
         text=text,
         regions=[m.RegionOut(score=r.score, centroid=r.centroid.tolist(), box_min=r.box_min.tolist(),
@@ -68,21 +71,23 @@ def _answer_out(stream: str, texts: list[str], ans: Answer) -> m.QueryResponse:
         top_points=[m.PointOut(xyz=p.tolist(), score=float(s)) for p, s in zip(res.top_xyz, res.top_scores)],
     ) for text, res in zip(texts, ans.results)]
     scores = ans.all_scores.tolist() if ans.all_scores is not None else None
-    return m.QueryResponse(stream=stream, n_points=ans.n_points, space=ans.space, results=results, point_scores=scores)
+    return m.QueryResponse(stream=stream, n_points=ans.n_points, space=ans.space, encoder=encoder, oracle=oracle,
+                           results=results, point_scores=scores)
 
 
 @router.post("/streams/{stream}/query", response_model=m.QueryResponse, summary="Natural-language query")
-async def query(request: Request, body: m.QueryRequest, stream: str = STREAM) -> m.QueryResponse:
+async def query(request: Request, body: m.QueryRequest, stream: str = STREAM, session: str = SESSION) -> m.QueryResponse:
     """Texts → CLIP → Talk2DINO → the map's DINO space → ranked 3D regions and top points per text."""
     stream = _stream(stream)
     texts = _check_texts(request, body.texts, "texts")
     opts = _options(request, body.top_k, body.threshold, body.max_regions, body.with_point_scores)
-    ans = await run_in_threadpool(_gateway(request).query_text, stream, texts, opts)
+    ans = await run_in_threadpool(_gateway(request).query_text, stream, texts, opts, session)
     limit = request.app.state.settings.max_point_scores
     if ans.all_scores is not None and ans.all_scores.size > limit:
         raise HTTPException(413, f"per-point scores of {ans.all_scores.shape[0]} texts x {ans.all_scores.shape[1]} points "
                                  f"exceed {limit} values (KMVIPE_QUERY_MAX_POINT_SCORES); use /segment with format=ply")
-    return _answer_out(stream, texts, ans)
+    text = _gateway(request).text
+    return _answer_out(stream, texts, ans, text.encoder_name(), text.is_oracle())
 
 
 def _decode_image(b64: str, what: str, flags: int, max_side: int) -> np.ndarray:
@@ -125,11 +130,11 @@ async def query_example(request: Request, body: m.ExampleRequest, stream: str = 
 
 @router.post("/streams/{stream}/segment", response_model=m.SegmentResponse, summary="Label every map point",
              responses={200: {"content": {"application/x-ply": {}}}})
-async def segment(request: Request, body: m.SegmentRequest, stream: str = STREAM):
+async def segment(request: Request, body: m.SegmentRequest, stream: str = STREAM, session: str = SESSION):
     """A label set → each point's best label (argmax of cosine scores); JSON summary or a labelled PLY."""
     stream = _stream(stream)
     labels = _check_texts(request, body.labels, "labels")
-    seg = await run_in_threadpool(_gateway(request).segment, stream, labels)
+    seg = await run_in_threadpool(_gateway(request).segment, stream, labels, session)
     point_label = apply_min_score(seg.label, seg.score, body.min_score)
     if body.format == "ply":
         palette = np.vstack([label_palette(len(labels)), [[128, 128, 128]]])
@@ -154,10 +159,13 @@ async def segment(request: Request, body: m.SegmentRequest, stream: str = STREAM
             responses={200: {"content": {"application/json": {"schema": m.TrajectoryResponse.model_json_schema()},
                                          "text/plain": {"example": "0.000000000 0 0 0 0 0 0 1\n"}}}})
 async def trajectory(request: Request, stream: str = STREAM,
-                     format: str = Query("json", pattern="^(json|tum)$", description="json or tum (text)")):
+                     format: str = Query("json", pattern="^(json|tum)$", description="json or tum (text)"),
+                     session: str = SESSION):
     """Latest pose of every frame the BA published for the stream (world_from_cam)."""
     stream = _stream(stream)
-    traj = _gateway(request).trajectory(stream)
+    gw = _gateway(request)
+    traj = await run_in_threadpool(gw.session_trajectory, stream, session) if session else \
+        await run_in_threadpool(gw.trajectory, stream)
     if traj is None:
         raise HTTPException(404, f"unknown stream '{stream}': no poses received on {keys.topic(stream, keys.POSE)}")
     if format == "tum":
@@ -172,15 +180,17 @@ async def trajectory(request: Request, stream: str = STREAM,
                 "schema": m.MapPoints.model_json_schema()}}}})
 async def map_points(request: Request, stream: str = STREAM,
                      format: str = Query("ply", pattern="^(ply|json)$", description="ply (streamed) or json"),
-                     max_points: int = Query(0, ge=0, le=5_000_000, description="json: subsample to this many (0: setting)")):
+                     max_points: int = Query(0, ge=0, le=5_000_000, description="json: subsample to this many (0: setting)"),
+                     session: str = SESSION):
     """PLY of every point (x y z, rgb), streamed chunk by chunk; or JSON of a subsample (what the viewer draws)."""
     stream = _stream(stream)
     gw, cfg = _gateway(request), request.app.state.settings
-    first = await run_in_threadpool(gw.maps.export_chunk, stream, 0, cfg.export_chunk_points)
+    first = await run_in_threadpool(gw.maps.export_chunk, stream, 0, cfg.export_chunk_points, session)
     if format == "ply":
-        return StreamingResponse(ply_stream(gw, stream, first, cfg.export_chunk_points), media_type="application/x-ply",
+        return StreamingResponse(ply_stream(gw, stream, first, cfg.export_chunk_points, session),
+                                 media_type="application/x-ply",
                                  headers={"Content-Disposition": f'attachment; filename="{stream}.ply"'})
-    chunks = [first] + [await run_in_threadpool(gw.maps.export_chunk, stream, i, cfg.export_chunk_points)
+    chunks = [first] + [await run_in_threadpool(gw.maps.export_chunk, stream, i, cfg.export_chunk_points, session)
                         for i in range(1, first.n_chunks)]
     xyz = np.concatenate([c.xyz for c in chunks]) if chunks else np.zeros((0, 3), np.float32)
     rgb = np.concatenate([c.rgb for c in chunks]) if chunks else np.zeros((0, 3), np.uint8)
@@ -189,11 +199,34 @@ async def map_points(request: Request, stream: str = STREAM,
                        xyz=np.round(xyz[keep], 4).ravel().tolist(), rgb=rgb[keep].ravel().tolist())
 
 
+@router.get("/streams/{stream}/sessions", response_model=m.SessionsResponse, summary="The stream's sessions")
+async def sessions(request: Request, stream: str = STREAM) -> m.SessionsResponse:
+    """Every session of the stream with a map: the current one and the earlier ones kept aside, each queryable
+    with ``?session=<id>`` on /query, /segment, /map and /trajectory (each session is its own world frame)."""
+    stream = _stream(stream)
+    found = await run_in_threadpool(_gateway(request).maps.sessions, stream)
+    return m.SessionsResponse(stream=stream, current=found.current, sessions=[
+        m.SessionInfo(session=name, keyframes=int(k), finished=bool(f), current=name == found.current)
+        for name, k, f in zip(found.sessions(), found.keyframes.tolist(), found.finished.tolist())])
+
+
 @router.get("/streams", response_model=m.StreamsResponse, summary="Known streams")
 async def streams(request: Request) -> m.StreamsResponse:
-    found = await run_in_threadpool(_gateway(request).streams)
-    return m.StreamsResponse(streams=[m.StreamInfo(name=k, map=v["map"], poses=v["poses"], session=v.get("session", ""))
-                                      for k, v in sorted(found.items())])
+    gw = _gateway(request)
+    found = await run_in_threadpool(gw.streams)
+    support = {name: await run_in_threadpool(_support, gw, v["map"]) for name, v in found.items()}
+    return m.StreamsResponse(streams=[m.StreamInfo(name=k, map=v["map"], poses=v["poses"], session=v.get("session", ""),
+                                                   queries=support[k]) for k, v in sorted(found.items())])
+
+
+def _support(gw: Gateway, stats: dict | None) -> m.QuerySupport:
+    """Text: the gateway's encoder against the map's space; example: a keyframe region pools the map's own codes."""
+    space = (stats or {}).get("backbone", "")
+    text, why = gw.text.availability(space)
+    example = bool(space)
+    return m.QuerySupport(text=text, text_why=why, example=example, oracle=gw.text.is_oracle() and text,
+                          example_why="pick a region of a keyframe in the viewer, or POST "
+                                      "/v1/streams/<s>/query/keyframe" if example else "the map has no features yet")
 
 
 @public.get("/health", response_model=m.HealthResponse, summary="Liveliness of every service (no API key needed)")

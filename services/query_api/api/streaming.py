@@ -1,4 +1,5 @@
-"""Streaming the fused map as PLY: the header from the first chunk, then every chunk as it arrives."""
+"""Streaming the fused map as PLY: the header from the first chunk, then every chunk as it arrives (plyfile writes
+only whole arrays: services/common/ply.py)."""
 from __future__ import annotations
 
 import logging
@@ -13,7 +14,7 @@ from ..core import ply
 log = logging.getLogger(__name__)
 
 
-async def ply_stream(gw, stream: str, first: MapChunk, chunk_points: int) -> AsyncIterator[bytes]:
+async def ply_stream(gw, stream: str, first: MapChunk, chunk_points: int, session: str = "") -> AsyncIterator[bytes]:
     """PLY bytes of the map of ``stream``. The vertex count is the first chunk's ``total_points``; should the
     map grow or shrink while it streams, the body is cut or padded (with the last point) to match the header."""
     total = int(first.total_points)
@@ -29,7 +30,7 @@ async def ply_stream(gw, stream: str, first: MapChunk, chunk_points: int) -> Asy
         index += 1
         if sent >= total or index >= first.n_chunks:
             break
-        chunk = await run_in_threadpool(gw.maps.export_chunk, stream, index, chunk_points)
+        chunk = await run_in_threadpool(gw.maps.export_chunk, stream, index, chunk_points, session)
     if sent < total:
         log.warning("map shrank while streaming; padding", extra={"stream": stream, "missing": total - sent})
         yield ply.vertices(np.repeat(last[0], total - sent, 0), np.repeat(last[1], total - sent, 0))

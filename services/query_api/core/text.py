@@ -3,9 +3,10 @@
 A :class:`TextEmbedder` turns labels such as ``"red chair"`` into unit vectors (Q, D) float32 in the
 embedding space of a backbone (``output_space``). Two encoders exist:
 
-- :class:`PromptEncoder`: CLIP text tower → Talk2DINO head (both callables taking/returning tensors);
-  every label is written into each template, each prompt is embedded and projected, the projected vectors
-  are L2-normalised and averaged (Talk2DINO's ensemble), and the mean is normalised again.
+- :class:`PromptEncoder`: CLIP text tower → Talk2DINO head (both callables taking/returning tensors), as
+  Talk2DINO's ``DINOText.build_text_embedding`` (``src/open_vocabulary_segmentation/models/dinotext/dinotext.py``):
+  every label is written into each template, the raw CLIP embeddings of its prompts are averaged, the mean is
+  projected once, and the projection is L2-normalised.
 - :class:`OracleTextEncoder`: label names mapped to given vectors (the synthetic world's oracle labels), so
   retrieval can be checked exactly without a language model.
 """
@@ -18,11 +19,17 @@ from typing import Callable, Protocol, Sequence
 import numpy as np
 import torch
 
+# Talk2DINO's templates: ``sub_imagenet_template`` of ``src/open_vocabulary_segmentation/datasets/templates.py``
+# (from TCL), which its evaluation configs (``configs/*/eval_*.yml``: ``template: sub_imagenet_template``) and
+# ``demo.py`` use; upstream writes ``{}`` where we write ``{label}``.
 DEFAULT_TEMPLATES: tuple[str, ...] = (
-    "There is {label} in the scene",
-    "There is a {label} in the scene",
-    "a photo of a {label}",
-    "a photo of the {label}",
+    "itap of a {label}.",
+    "a bad photo of a {label}.",
+    "a origami {label}.",
+    "a photo of the large {label}.",
+    "a {label} in a video game.",
+    "art of the {label}.",
+    "a photo of the small {label}.",
 )
 
 
@@ -52,8 +59,9 @@ def _unit_rows(x: np.ndarray) -> np.ndarray:
 class PromptEncoder:
     """CLIP text tower + text head with prompt ensembling.
 
-    ``text_model.encode(prompts) -> (P, C) tensor`` (CLIP space); ``head(tensor (P, C)) -> (P, D)`` (backbone
-    space). ``templates`` contain ``{label}``.
+    ``text_model.encode(prompts) -> (P, C) tensor``: CLIP text embeddings as the head was trained on them (raw,
+    not normalised, for Talk2DINO); ``head(tensor (Q, C)) -> (Q, D)`` (backbone space). ``templates`` contain
+    ``{label}``.
     """
 
     def __init__(self, text_model, head: Callable[[torch.Tensor], torch.Tensor], templates: Sequence[str],
@@ -69,10 +77,10 @@ class PromptEncoder:
         if not labels:
             raise ValueError("encode() needs at least one label")
         prompts = [t.format(label=label) for label in labels for t in self.templates]
-        clip = self.text_model.encode(prompts)  # (Q·T, C), unit rows
-        projected = self.head(clip).float()  # (Q·T, D)
-        projected = torch.nn.functional.normalize(projected, dim=-1).reshape(len(labels), len(self.templates), -1)
-        return _unit_rows(projected.mean(dim=1).cpu().numpy())
+        clip = self.text_model.encode(prompts).float()  # (Q·T, C)
+        # upstream averages in CLIP space and projects the mean (the head is non-linear: not the mean of projections)
+        mean = clip.reshape(len(labels), len(self.templates), -1).mean(dim=1)  # (Q, C)
+        return _unit_rows(self.head(mean).float().cpu().numpy())  # (Q, D)
 
 
 class OracleTextEncoder:

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ...common.rotations import rotation_to_quaternion
+from ...evaluation import trajectory_io
 
 
 @dataclass(frozen=True)
@@ -51,17 +51,7 @@ class PoseBook:
         return Trajectory(seqs, stamps, poses)
 
 
-def quaternion_xyzw(rotation: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) rotation matrices → (N, 4) unit quaternions (x, y, z, w), w ≥ 0 (Hamilton)."""
-    return rotation_to_quaternion(rotation)
-
-
 def tum_text(traj: Trajectory) -> str:
-    """TUM trajectory text (one line per frame, seconds with 9 decimals)."""
-    if not len(traj.seqs):
-        return ""
-    q = quaternion_xyzw(traj.poses[:, :3, :3])
-    t = traj.poses[:, :3, 3]
-    lines = [f"{ns // 1_000_000_000}.{ns % 1_000_000_000:09d} " + " ".join(f"{v:.9g}" for v in (*ti, *qi))
-             for ns, ti, qi in zip(traj.stamps_ns.tolist(), t, q)]
-    return "\n".join(lines) + "\n"
+    """TUM trajectory text (one line per frame, seconds with 9 decimals, exact from the nanosecond stamps)."""
+    stamps = [trajectory_io.tum_timestamp(ns) for ns in traj.stamps_ns.tolist()]
+    return trajectory_io.tum_text(stamps, traj.poses)

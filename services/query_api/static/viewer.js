@@ -6,8 +6,10 @@ if (params.get("key")) localStorage.setItem("kmvipe-key", apiKey);
 const POLL_MS = Number(params.get("poll") || 2000);
 const HIGHLIGHT = [255, 40, 200];
 const $ = (id) => document.getElementById(id);
+const STREAMS_MS = 10000;  // how often the stream list (and what each stream's map can answer) is re-read
 const state = { stream: params.get("stream") || "", xyz: new Float32Array(0), rgb: new Uint8Array(0), poses: [],
-  regions: [], highlight: new Uint8Array(0), yaw: -0.5, pitch: 0.6, zoom: 1.0, centre: [0, 0, 0], radius: 1 };
+  regions: [], highlight: new Uint8Array(0), yaw: -0.5, pitch: 0.6, zoom: 1.0, centre: [0, 0, 0], radius: 1,
+  streams: [], streamsAt: 0 };
 
 async function api(path, body) {
   const opts = { headers: { "X-API-Key": apiKey } };
@@ -18,17 +20,38 @@ async function api(path, body) {
   return data;
 }
 
+async function apiBlob(path) {  // an image behind the API key (an <img src> cannot send the header)
+  const res = await fetch(path, { headers: { "X-API-Key": apiKey } });
+  if (!res.ok) throw new Error((await res.json().catch(() => ({}))).detail || res.statusText);
+  return URL.createObjectURL(await res.blob());
+}
+
 async function loadStreams() {
   const data = await api("/v1/streams");
   const sel = $("stream");
   const names = data.streams.map((s) => s.name);
   if (!state.stream && names.length) state.stream = names[0];
   sel.innerHTML = names.map((n) => `<option ${n === state.stream ? "selected" : ""}>${n}</option>`).join("");
+  state.streams = data.streams; state.streamsAt = Date.now();
+  showTextSupport(data.streams.find((s) => s.name === state.stream));
+}
+
+function textSupport(q) {  // a stream's `queries.text`, as {available, why, encoder, oracle}; null when not given
+  if (!q || q.text === undefined || q.text === null) return null;
+  if (typeof q.text === "object") return { available: !!q.text.available, why: q.text.why || "", encoder: q.text.encoder || "", oracle: !!q.text.oracle };
+  return { available: !!q.text, why: q.text_why || "", encoder: q.encoder || "", oracle: !!q.oracle };  // flat form
+}
+
+function showTextSupport(entry) {
+  const t = textSupport(entry && entry.queries), el = $("text-status");
+  if (!t) { el.textContent = ""; el.title = ""; return; }
+  el.textContent = !t.available ? `text: unavailable — ${t.why}` : t.oracle ? "text: oracle (synthetic ground truth)" : `text: ${t.encoder || "available"}`;
+  el.className = t.available ? "muted" : "warn"; el.title = t.why;
 }
 
 async function refresh() {
   try {
-    if (!state.stream) await loadStreams();
+    if (!state.stream || Date.now() - state.streamsAt > STREAMS_MS) await loadStreams();
     if (!state.stream) { $("status").textContent = "no stream yet"; return; }
     const map = await api(`/v1/streams/${state.stream}/map?format=json`);
     state.xyz = Float32Array.from(map.xyz); state.rgb = Uint8Array.from(map.rgb);
@@ -38,6 +61,7 @@ async function refresh() {
     if (!state.framed) { frameScene(); state.framed = true; }
     markHighlights(); draw();
   } catch (e) { $("status").textContent = "error: " + e.message; }
+  if (state.stream && typeof refreshKeyframes === "function") await refreshKeyframes();  // keyframes.js
 }
 
 function frameScene() {
@@ -121,13 +145,25 @@ async function search() {
   const text = $("query").value.trim(); $("error").textContent = "";
   if (!text || !state.stream) return;
   try {
-    const ans = await api(`/v1/streams/${state.stream}/query`, { texts: [text], top_k: 50, max_regions: 5 });
-    const res = ans.results[0]; state.regions = res.regions;
-    $("results").innerHTML = res.regions.map((r) =>
-      `<li class="result" data-score="${r.score.toFixed(4)}" data-count="${r.count}">${res.text}: score ${r.score.toFixed(3)}, ` +
-      `${r.count} points<br><span class="muted">centre (${r.centroid.map((v) => v.toFixed(2)).join(", ")})</span></li>`).join("")
-      || "<li class='muted'>no region above the threshold</li>";
-  } catch (e) { state.regions = []; $("results").innerHTML = ""; $("error").textContent = e.message; }
+    showAnswer(await api(`/v1/streams/${state.stream}/query`, { texts: [text], top_k: 50, max_regions: 5 }), "");
+  } catch (e) { showError(e); }
+}
+
+function escapeHtml(s) { return String(s).replace(/[&<>"']/g, (c) => `&#${c.charCodeAt(0)};`); }
+
+function showAnswer(ans, note) {  // a query's answer (text or keyframe region): results list, highlighted points
+  const res = ans.results[0]; state.regions = res.regions;
+  $("results").innerHTML = res.regions.map((r) =>
+    `<li class="result" data-score="${r.score.toFixed(4)}" data-count="${r.count}">${escapeHtml(res.text)}: score ${r.score.toFixed(3)}, ` +
+    `${r.count} points<br><span class="muted">centre (${r.centroid.map((v) => v.toFixed(2)).join(", ")})</span></li>`).join("")
+    || "<li class='muted'>no region above the threshold</li>";
+  $("answer-note").textContent = ans.oracle ? "oracle answer: the synthetic world's ground-truth label vectors, not a language model" : note;
+  $("answer-note").className = ans.oracle ? "warn" : "muted";
+  markHighlights(); draw();
+}
+
+function showError(e) {
+  state.regions = []; $("results").innerHTML = ""; $("answer-note").textContent = ""; $("error").textContent = e.message;
   markHighlights(); draw();
 }
 
@@ -143,7 +179,9 @@ function controls() {
   addEventListener("resize", draw);
   $("search").addEventListener("click", search);
   $("query").addEventListener("keydown", (e) => { if (e.key === "Enter") search(); });
-  $("stream").addEventListener("change", (e) => { state.stream = e.target.value; state.framed = false; refresh(); });
+  $("stream").addEventListener("change", (e) => {
+    state.stream = e.target.value; state.framed = false; showTextSupport(state.streams.find((s) => s.name === state.stream)); refresh();
+  });
 }
 
 controls();
