@@ -6,7 +6,6 @@ import importlib
 import json
 import os
 import re
-import signal
 import socket
 import subprocess
 import sys
@@ -26,6 +25,7 @@ from services.common.config_file import CONFIG_ENV, TABLES, KmVipeSettings, tabl
 from services.common.errors import ConfigError
 from services.features.config import FeaturesSettings
 from tests.conftest import REPO, wait_until
+from tests.helpers.processes import stop_cleanly
 
 KMVIPE = Path(sys.executable).with_name("kmvipe")
 EXAMPLE = REPO / "deploy" / "kmvipe.example.toml"
@@ -242,13 +242,7 @@ device = "cpu"
             ready_line = next(line for line in lines if line["message"] == "ba ready")
             assert ready_line["stream"] == stream and ready_line["device"] == "cpu"
         finally:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                assert proc.wait(timeout=30) == 0, log_path.read_text()
-            finally:
-                if proc.poll() is None:
-                    proc.kill()
-                    proc.wait()
+            stop_cleanly(proc, log_path)
 
 
 @pytest.mark.timeout(60)

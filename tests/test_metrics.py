@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -35,6 +34,7 @@ from services.common.schema import Credit, FrameLite, Keyframe, Poses, encode
 from services.common.service_main import StreamField
 from services.query_api.api.middleware import Metrics, MetricsMiddleware
 from tests.conftest import wait_until
+from tests.helpers.processes import stop_cleanly
 
 KMVIPE = Path(sys.executable).with_name("kmvipe")
 K = np.array([10.0, 10.0, 4.0, 4.0])
@@ -268,13 +268,7 @@ def test_a_service_process_serves_its_metrics_and_health(tmp_path, tcp_endpoint)
             assert _value(text, "kmvipe_service_info", service="mapstore") == 1
             token.undeclare()
         finally:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                assert proc.wait(timeout=30) == 0, log_path.read_text()
-            finally:
-                if proc.poll() is None:
-                    proc.kill()
-                    proc.wait()
+            stop_cleanly(proc, log_path)
 
 
 def test_the_gateway_counts_requests_by_route_template_and_exact_status():

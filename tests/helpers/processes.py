@@ -84,3 +84,14 @@ def _answers(url: str) -> bool:
         return httpx.get(f"{url}/v1/health", timeout=2).status_code == 200
     except httpx.HTTPError:
         return False
+
+
+def stop_cleanly(proc: subprocess.Popen, log: Path, grace_s: float = 30.0) -> None:
+    """SIGTERM, and the process must exit 0 within ``grace_s`` (its log in the failure); killed if it does not."""
+    proc.send_signal(signal.SIGTERM)
+    try:
+        assert proc.wait(timeout=grace_s) == 0, log.read_text()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
