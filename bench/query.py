@@ -73,16 +73,18 @@ class _FusedMap:
 class _MapState:
     """What services.mapstore.queries reads of ``MapState``: a prebuilt fused map and its scoring index."""
 
-    def __init__(self, ijk, xyz, rgb, codes, basis):
+    def __init__(self, ijk, xyz, rgb, codes, basis, answer_cache: int):
         from services.mapstore.config import MapParams
         from services.mapstore.core.fusion import FusedVoxels
         from services.mapstore.core.scoring import ScoringIndex
+        from services.mapstore.state import AnswerCache
 
         n = len(xyz)
         fused = FusedVoxels(np.arange(n, dtype=np.int64), ijk, xyz.astype(np.float64), codes, rgb, np.ones(n), np.ones(n, np.int64))
         self.lock, self.map, self.bases, self.metric = threading.RLock(), _FusedMap(fused, MapParams()), {1: basis}, True
         self.session = ""
         self._index = ScoringIndex(codes, basis, "cpu")
+        self.answers = AnswerCache(answer_cache)
 
     def index(self):
         return self._index
@@ -111,9 +113,7 @@ def serve(args, port_queue) -> None:
         from services.mapstore import queries
         from services.mapstore.core.scoring import PcaBasis
 
-        if args.answer_cache == "off":
-            queries.ANSWER_CACHE = 0
-        state = _MapState(ijk, xyz, rgb, codes, PcaBasis(1, mean, comps, "oracle"))
+        state = _MapState(ijk, xyz, rgb, codes, PcaBasis(1, mean, comps, "oracle"), _answer_cache(args))
         map_bus.serve(f"kmvipe/{STREAM}/map/**", lambda key, p, payload: queries.answer(state, STREAM, key, p, payload))
     else:
         from services.query_api.refmap import RefMap, RefMapParams
@@ -186,21 +186,23 @@ def run_inproc(args, requests: int) -> np.ndarray:
     from services.mapstore.core.scoring import PcaBasis
 
     ijk, xyz, rgb, codes, mean, comps, vecs = build_map(args.points, args.labels)
-    state = _MapState(ijk, xyz, rgb, codes, PcaBasis(1, mean, comps, "oracle"))
+    state = _MapState(ijk, xyz, rgb, codes, PcaBasis(1, mean, comps, "oracle"), _answer_cache(args))
     vec = vecs[label_names(args.labels).index(args.text)][None]
-    saved = getattr(queries, "ANSWER_CACHE", 0)  # 0: a mapstore version without an answer cache
-    queries.ANSWER_CACHE = saved if args.answer_cache == "on" else 0
-    try:
-        out = []
-        for i in range(requests + 5):  # the first 5: warm-up (first touch of the index, answer cached)
-            t0 = time.perf_counter()
-            with state.lock:
-                queries.query(state, MapQuery(STREAM, i, time.time_ns(), vectors=vec, space="oracle", top_k=20,
-                                              max_regions=10))
-            out.append(time.perf_counter() - t0)
-    finally:
-        queries.ANSWER_CACHE = saved
+    out = []
+    for i in range(requests + 5):  # the first 5: warm-up (first touch of the index, answer cached)
+        t0 = time.perf_counter()
+        with state.lock:
+            queries.query(state, MapQuery(STREAM, i, time.time_ns(), vectors=vec, space="oracle", top_k=20,
+                                          max_regions=10))
+        out.append(time.perf_counter() - t0)
     return np.array(out[5:])
+
+
+def _answer_cache(args) -> int:
+    """The mapstore's answer cache size for ``--answer-cache`` (its default, or 0: every request scored)."""
+    from services.mapstore.config import MapstoreSettings
+
+    return MapstoreSettings.model_fields["answer_cache"].default if args.answer_cache == "on" else 0
 
 
 def _row(args, route: str, clients: int, lat: np.ndarray, wall: float) -> dict:

@@ -190,6 +190,9 @@ class MapstoreSettings(KmVipeSettings):
     (``map/keyframe``); a few kB each at 160 (5.3 kB for a 128×96 synthetic keyframe). 0: none kept."""
     thumbnail_quality: int = Field(80, ge=1, le=100)
     """JPEG quality of the thumbnails."""
+    answer_cache: int = Field(256, ge=0)
+    """Query vectors whose findings are kept for the current map revision (a few kB each): a vector asked again
+    before the map changes is answered without scoring. 0: every query scored."""
     export_dir: str = ""
     """When set, write map.ply, depth maps and COLMAP cameras here at end of stream."""
     upstream: str = "ba"

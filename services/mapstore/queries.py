@@ -15,10 +15,7 @@ Voxels that only keyframes whose codes have not arrived saw have no code: they a
 from __future__ import annotations
 
 import dataclasses
-import threading
 import time
-import weakref
-from collections import OrderedDict
 from typing import NamedTuple
 
 import numpy as np
@@ -58,7 +55,7 @@ def query(state: MapState, q: MapQuery) -> MapAnswer:
     The vectors not answered from the cache are scored together, once against every point (exact cosine, see
     ScoringIndex); each one's threshold, top points and regions are then taken from its score vector, reading
     only the points above the threshold. A vector asked again (same options) on the same map revision is
-    answered from a small cache (``ANSWER_CACHE`` vectors).
+    answered from ``state.answers`` (``MapstoreSettings.answer_cache`` vectors).
     """
     _check_space(state, q)
     index = state.index()
@@ -66,7 +63,7 @@ def query(state: MapState, q: MapQuery) -> MapAnswer:
     params = dataclasses.replace(state.map.params.regions, max_regions=q.max_regions)
     vectors = np.ascontiguousarray(q.vectors, np.float32)
     keys = [None if q.with_points else (v.tobytes(), q.space, q.top_k, q.threshold, params) for v in vectors]
-    found: list[_Found | None] = [_cached(index, fused, key) for key in keys]
+    found: list[_Found | None] = [state.answers.get(index, key) for key in keys]
     todo = [i for i, f in enumerate(found) if f is None]
     all_scores = None
     if todo:
@@ -77,7 +74,7 @@ def query(state: MapState, q: MapQuery) -> MapAnswer:
             regions = [(r.score, r.centroid, r.box_min, r.box_max, r.count)
                        for r in regions_of(fused.ijk, fused.xyz, sel, s[sel], params)]
             found[i] = _Found(regions, *best_of(s, k, above=sel))
-            _remember(index, fused, keys[i], found[i])
+            state.answers.put(index, keys[i], found[i])
         all_scores = scores if q.with_points else None  # with_points: every vector is in todo
     return _answer(q, fused, found, all_scores)
 
@@ -106,36 +103,6 @@ def _answer(q: MapQuery, fused, found: list[_Found], all_scores: np.ndarray | No
         point_score=f4(np.concatenate([f.top_score for f in found]) if found else [], (-1,)),
         all_scores=all_scores, n_points=int(len(fused.keys)),
     )
-
-
-# What recent query vectors found, per scoring index: an index lives for one map revision under one basis, so a
-# result is never reused on a map it was not computed on (the fused map is checked too, by identity).
-ANSWER_CACHE = 256  # query vectors remembered per index (a few KB each)
-_answers: "weakref.WeakKeyDictionary[object, tuple[object, OrderedDict]]" = weakref.WeakKeyDictionary()
-_answers_lock = threading.Lock()
-
-
-def _cached(index, fused, key) -> _Found | None:
-    if key is None:
-        return None
-    with _answers_lock:
-        entry = _answers.get(index)
-        if entry is None or entry[0] is not fused or key not in entry[1]:
-            return None
-        entry[1].move_to_end(key)
-        return entry[1][key]
-
-
-def _remember(index, fused, key, result: _Found) -> None:
-    if key is None or ANSWER_CACHE <= 0:
-        return
-    with _answers_lock:
-        entry = _answers.get(index)
-        if entry is None or entry[0] is not fused:
-            entry = _answers[index] = (fused, OrderedDict())
-        entry[1][key] = result
-        while len(entry[1]) > ANSWER_CACHE:
-            entry[1].popitem(last=False)
 
 
 def segment(state: MapState, q: MapQuery) -> MapSegment:
