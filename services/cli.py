@@ -34,15 +34,12 @@ def _add_stream_options(p: argparse.ArgumentParser) -> None:
 def _cmd_run(args: argparse.Namespace) -> int:
     from .runner.pipeline import RunSettings, run_pipeline
     from .runner.rerun_log import load_rerun, target_settings
-    from .runner.semantics import check_models, semantic_profile
+    from .runner.semantics import QuerySupport
 
     rerun = target_settings(args.rerun, args.rerun_connect, image_every=args.rerun_every,
                             map_every_s=args.rerun_map_every, queries=tuple(args.rerun_query))
     if rerun is not None:
         load_rerun()  # a missing rerun-sdk ends the run before anything starts
-    profile = semantic_profile(args.text, args.source)
-    check_models(profile)
-    print(f"kmvipe: semantic queries of this map: {profile.support.line()}", flush=True)
     cfg = RunSettings(
         source=args.source, out=Path(args.out), stream=args.stream, pacing=args.pacing, encoding=args.encoding,
         intrinsics=tuple(args.intrinsics) if args.intrinsics else None, max_frames=args.max_frames, serve=args.serve,
@@ -50,7 +47,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
         depth_scale=getattr(args, "depth_scale", None), text=args.text, topic=getattr(args, "topic", None),
         rerun=rerun,
     )
-    report = run_pipeline(cfg, on_outputs=_print_summary)  # the summary is printed as soon as it is written
+    report = run_pipeline(cfg, on_outputs=_print_summary,  # the summary is printed as soon as it is written
+                          on_start=lambda r: print("kmvipe: semantic queries of this map: "
+                                                   f"{QuerySupport(**r.queries).line()}", flush=True))
     if report.stopped_by:  # SIGINT / SIGTERM / SIGHUP before the end of the stream: the shell's 128 + signal
         print(f"kmvipe: stopped by {report.stopped_by} before the end of the stream; "
               f"what was produced so far is in {cfg.out.resolve()}", file=sys.stderr)

@@ -205,10 +205,12 @@ class StopSignals:
         self._previous.clear()
 
 
-def run_pipeline(cfg: RunSettings, on_outputs: Callable[[RunReport], None] | None = None) -> RunReport:
+def run_pipeline(cfg: RunSettings, on_outputs: Callable[[RunReport], None] | None = None,
+                 on_start: Callable[[RunReport], None] | None = None) -> RunReport:
     """Run the pipeline on ``cfg.source``; the outputs are written at end of stream (before ``--serve`` keeps the
-    gateway up), or, when a signal stops the run, after the services stopped. ``on_outputs(report)`` is called
-    once they are on disk."""
+    gateway up), or, when a signal stops the run, after the services stopped. ``on_start(report)`` is called once
+    the run is checked (its models present, ``report.queries`` known), before any process starts;
+    ``on_outputs(report)`` once the outputs are on disk."""
     cfg = absolute_paths(cfg)
     keys.check_name(cfg.stream)
     unknown = set(cfg.skip) - set(kids.PIPELINE)
@@ -221,6 +223,8 @@ def run_pipeline(cfg: RunSettings, on_outputs: Callable[[RunReport], None] | Non
     check_models(profile)  # before any process starts: a missing model ends the run in seconds, saying what to pull
     report = RunReport(cfg.source, cfg.stream, built, [n for n in kids.PIPELINE if not kids.is_built(n)],
                        services_skipped=list(cfg.skip), queries=profile.support.as_dict())
+    if on_start is not None:
+        on_start(report)
     cfg.out.mkdir(parents=True, exist_ok=True)
     endpoint = kids.free_tcp_endpoint()
     observer = _Observer(last_stage=kids.last_connected_stage(built))
@@ -242,7 +246,8 @@ def run_pipeline(cfg: RunSettings, on_outputs: Callable[[RunReport], None] | Non
         if on_outputs is not None:
             on_outputs(report)
 
-    overrides = {name: child_env(endpoint, _service_env(name, cfg, built)) for name in built}
+    envs = {name: _service_env(name, cfg, built, profile.env.get(name, {})) for name in built}  # in chain order
+    overrides = {name: child_env(endpoint, env) for name, env in envs.items()}
     gateway = f"http://127.0.0.1:{cfg.port}" if "query_api" in built else None
     with StopSignals() as stop, Bus(BusSettings(mode="router", listen=[endpoint]), "runner") as bus, \
             SettingsProbe(overrides) as probe, open_recorder(cfg.rerun, bus, cfg.stream, gateway) as recorder:
@@ -250,7 +255,7 @@ def run_pipeline(cfg: RunSettings, on_outputs: Callable[[RunReport], None] | Non
             bus.subscribe(keys.topic(cfg.stream, topic), observer.on_message)
         bus.ready()
         try:
-            if not _stream(bus, cfg, built, endpoint, observer, monitor, started, stop, report):
+            if not _stream(bus, cfg, envs, endpoint, observer, monitor, started, stop, report):
                 report.stopped_by = stop.name
                 report.end_reason = f"stopped by {stop.name}"
             else:  # the stream ended: outputs now, so they are on disk while the gateway serves
@@ -264,22 +269,22 @@ def run_pipeline(cfg: RunSettings, on_outputs: Callable[[RunReport], None] | Non
     return report
 
 
-def _stream(bus: Bus, cfg: RunSettings, built: list[str], endpoint: str, observer: _Observer,
+def _stream(bus: Bus, cfg: RunSettings, envs: dict[str, dict[str, str]], endpoint: str, observer: _Observer,
             monitor: ResourceMonitor, started: list[kids.Child], stop: StopSignals, report: RunReport) -> bool:
-    """Start the services, then ingest, and follow the stream to its end (True; ``report.end_reason`` says how
-    it ended) or until a stop signal cuts it short (False)."""
-    for name in [n for n in built if n != "ingest"]:
+    """Start the services (``envs``: each built one's environment), then ingest, and follow the stream to its end
+    (True; ``report.end_reason`` says how it ended) or until a stop signal cuts it short (False)."""
+    for name in [n for n in envs if n != "ingest"]:
         if stop.is_set():
             return False
-        started.append(kids.start(name, endpoint, cfg.out / "logs", _service_env(name, cfg, built)))
+        started.append(kids.start(name, endpoint, cfg.out / "logs", envs[name]))
         monitor.watch(name, started[-1].process.pid)
     if not _wait_alive(bus, started, cfg.alive_timeout_s, stop):
         return False
-    sink = None if "features" in built else _CreditSink(bus, cfg, observer)
+    sink = None if "features" in envs else _CreditSink(bus, cfg, observer)
     monitor.mark_stream_start()  # CPU spent loading models is not the stream's
     begin = time.monotonic()
     try:
-        ingest = kids.start("ingest", endpoint, cfg.out / "logs", _service_env("ingest", cfg))
+        ingest = kids.start("ingest", endpoint, cfg.out / "logs", envs["ingest"])
         started.append(ingest)
         monitor.watch("ingest", ingest.process.pid)
         reason = _follow(observer, monitor, started, ingest, cfg, stop)
@@ -293,9 +298,11 @@ def _stream(bus: Bus, cfg: RunSettings, built: list[str], endpoint: str, observe
     return True
 
 
-def _service_env(name: str, cfg: RunSettings, built: list[str] = ()) -> dict[str, str]:
+def _service_env(name: str, cfg: RunSettings, built: list[str] = (), semantic: dict[str, str] | None = None
+                 ) -> dict[str, str]:
+    """``name``'s environment for this run; ``semantic``: its settings of the run's semantic profile."""
     prefix = f"KMVIPE_{name.upper()}_"
-    env = {prefix + "STREAM": cfg.stream, **semantic_profile(cfg.text, cfg.source).env.get(name, {})}
+    env = {prefix + "STREAM": cfg.stream, **(semantic or {})}
     if name == "features":  # its first credit waits for the downstream stages this run starts, no other
         env[prefix + "AWAIT_DOWNSTREAM"] = json.dumps([n for n in ("ba", "mapstore") if n in built])
     if name == "mapstore":
