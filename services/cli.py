@@ -34,7 +34,7 @@ def _add_stream_options(p: argparse.ArgumentParser) -> None:
 def _cmd_run(args: argparse.Namespace) -> int:
     from .runner.pipeline import RunSettings, run_pipeline
     from .runner.rerun_log import load_rerun, target_settings
-    from .runner.semantics import QuerySupport
+    from .common.query_support import QuerySupport
 
     rerun = target_settings(args.rerun, args.rerun_connect, image_every=args.rerun_every,
                             map_every_s=args.rerun_map_every, queries=tuple(args.rerun_query))

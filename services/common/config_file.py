@@ -41,9 +41,9 @@ ENV_ROOT = "KMVIPE_"
 
 TABLES = ("bus", "log", "metrics", "streams", "shard", "ingest", "features", "ba", "mapstore", "query", "ros2",
           "ros2_zenoh")
-"""Every table a file may hold: one per settings prefix (``KMVIPE_<TABLE>_``). Listed here rather than collected
-from the classes because one process imports only its own service's classes, yet must still refuse a misspelt
-table meant for another (tests/test_config_file.py checks this list against every settings class)."""
+"""Every table a file may hold: one per settings prefix (``KMVIPE_<TABLE>_``). Listed here, not collected from the
+classes, because one process imports only its own service's classes, yet must still refuse a misspelt table meant
+for another (tests/test_config_file.py checks this list against every settings class)."""
 
 _FIELDS: dict[str, set[str]] = {}
 """Field names of the classes defined so far, per table: a subclass sharing its parent's prefix (ba's

@@ -10,6 +10,7 @@ import numpy as np
 
 from ..common.errors import KmVipeError, ModelError
 from ..common.models import ModelStore, get_entry, text_head_for
+from ..common.query_support import ORACLE_WHY
 from .config import QuerySettings
 from .core.text import OracleTextEncoder, PromptEncoder, TextEmbedder
 
@@ -101,8 +102,7 @@ class TextPath:
         if emb.output_space != map_space:
             return False, mismatch_message(emb.output_space, map_space, self.cfg.models_dir)
         if self.is_oracle():
-            return True, ("oracle: the synthetic world's ground-truth label vectors stand in for the language model "
-                          "(a test double, not a learned model)")
+            return True, ORACLE_WHY
         return True, f"{name} maps text into '{map_space}'"
 
     def encoder_name(self) -> str:

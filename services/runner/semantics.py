@@ -12,10 +12,11 @@ One switch (``kmvipe run --text``) picks a profile:
 from __future__ import annotations
 
 import os
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..common.errors import KmVipeError
+from ..common.query_support import EXAMPLE_WHY, ORACLE_WHY, QuerySupport
 from ..common.models import ModelStore, get_entry
 from ..common.models.registry import DEFAULT_BACKBONE, DEFAULT_TEXT, DEFAULT_TEXT_HEAD, ModelKind, PypiSource, all_entries
 
@@ -23,26 +24,6 @@ ORACLE_BACKBONE = "synth-oracle"  # services.features.oracle.ORACLE_BACKBONE; no
 TEXT_PROFILES = ("none", "talk2dino", "oracle")
 ORACLE_SPACE = "oracle"
 ORACLE_SEED, ORACLE_DIM = 0, 64  # the features oracle and the gateway's oracle text encoder must agree
-
-
-@dataclass(frozen=True)
-class QuerySupport:
-    """What a map answers: text queries and region (example) queries, each with the reason."""
-
-    text: bool
-    text_why: str
-    example: bool
-    example_why: str
-    oracle: bool = False
-
-    def line(self) -> str:
-        """``text: available (…); example: available (…)``, the form the CLI, summary and API use."""
-        def word(ok: bool) -> str:
-            return "available" if ok else "unavailable"
-        return (f"text: {word(self.text)} — {self.text_why}; example: {word(self.example)} — {self.example_why}")
-
-    def as_dict(self) -> dict:
-        return asdict(self)
 
 
 @dataclass(frozen=True)
@@ -67,9 +48,6 @@ def backbone_for_space(space: str) -> str:
     raise KmVipeError(f"no registered backbone writes '{space}'; see 'kmvipe models list'")
 
 
-EXAMPLE_WHY = "pick a region of a keyframe in the viewer, or POST /v1/streams/<s>/query/keyframe"
-
-
 def semantic_profile(text: str, source: str, environ: dict[str, str] | None = None) -> SemanticProfile:
     """The profile ``text`` names for a run of ``source``; KmVipeError when it cannot apply."""
     env = os.environ if environ is None else environ
@@ -80,8 +58,7 @@ def semantic_profile(text: str, source: str, environ: dict[str, str] | None = No
         if not source.startswith("synth:"):
             raise KmVipeError(f"--text oracle needs a synthetic source (synth:...), not {source!r}: its label "
                               "features are the synthetic world's ground truth. For real video use --text talk2dino.")
-        why = ("oracle: the synthetic world's ground-truth label vectors stand in for DINO and the language model "
-               "(a test double, not a learned model)")
+        why = ORACLE_WHY
         return SemanticProfile("oracle", ORACLE_BACKBONE, (), {
             "features": {"KMVIPE_FEATURES_BACKBONE": ORACLE_BACKBONE, "KMVIPE_FEATURES_ORACLE_SOURCE": source,
                          "KMVIPE_FEATURES_ORACLE_SEED": str(ORACLE_SEED), "KMVIPE_FEATURES_ORACLE_DIM": str(ORACLE_DIM)},

@@ -12,6 +12,7 @@ from fastapi.responses import PlainTextResponse, Response, StreamingResponse
 
 from ...common import keys
 from ...common.errors import ConfigError
+from ...common.query_support import EXAMPLE_WHY
 from ..core import ply
 from ..core.imagesize import declared_size
 from ..core.answers import apply_min_score, label_palette, segment_summary, subsample
@@ -225,8 +226,7 @@ def _support(gw: Gateway, stats: dict | None) -> m.QuerySupport:
     text, why = gw.text.availability(space)
     example = bool(space)
     return m.QuerySupport(text=text, text_why=why, example=example, oracle=gw.text.is_oracle() and text,
-                          example_why="pick a region of a keyframe in the viewer, or POST "
-                                      "/v1/streams/<s>/query/keyframe" if example else "the map has no features yet")
+                          example_why=EXAMPLE_WHY if example else "the map has no features yet")
 
 
 @public.get("/health", response_model=m.HealthResponse, summary="Liveliness of every service (no API key needed)")
