@@ -41,6 +41,27 @@ class Alignment:
 
 
 @dataclass(frozen=True)
+class ErrorStats:
+    """Statistics of per-pair errors (evo's ``get_all_statistics``; ``std`` is the population std)."""
+
+    rmse: float
+    mean: float
+    median: float
+    std: float
+    min: float
+    max: float
+    sse: float
+    n: int
+
+    @classmethod
+    def of(cls, errors: np.ndarray) -> ErrorStats:
+        """Statistics of ``errors`` ``(P,)``, P >= 1."""
+        e = np.asarray(errors, dtype=np.float64)
+        return cls(rmse=float(np.sqrt(np.mean(e**2))), mean=float(e.mean()), median=float(np.median(e)),
+                   std=float(e.std()), min=float(e.min()), max=float(e.max()), sse=float((e**2).sum()), n=len(e))
+
+
+@dataclass(frozen=True)
 class AteResult:
     """Position errors after alignment, metres (or the reference's unit)."""
 
@@ -123,6 +144,6 @@ def absolute_trajectory_error(reference: Trajectory, estimate: Trajectory, align
     alignment = align_poses(est, ref, align)
     aligned = alignment.scale * est @ alignment.rotation.T + alignment.translation
     err = np.linalg.norm(aligned - ref, axis=1)
-    return AteResult(rmse=float(np.sqrt((err**2).mean())), mean=float(err.mean()), median=float(np.median(err)),
-                     std=float(err.std()), min=float(err.min()), max=float(err.max()), sse=float((err**2).sum()),
-                     n_pairs=len(err), alignment=alignment, errors=err)
+    stats = ErrorStats.of(err)
+    return AteResult(rmse=stats.rmse, mean=stats.mean, median=stats.median, std=stats.std, min=stats.min,
+                     max=stats.max, sse=stats.sse, n_pairs=stats.n, alignment=alignment, errors=err)

@@ -21,31 +21,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.evaluation.ate import Alignment, align_poses, matched_poses
+from services.evaluation.ate import Alignment, ErrorStats, align_poses, matched_poses
 from services.evaluation.trajectory_io import Trajectory
 
 DELTA_UNITS = ("frames", "m")
-
-
-@dataclass(frozen=True)
-class ErrorStats:
-    """Statistics of per-pair errors (evo's ``get_all_statistics``; ``std`` is the population std)."""
-
-    rmse: float
-    mean: float
-    median: float
-    std: float
-    min: float
-    max: float
-    sse: float
-    n: int
-
-    @classmethod
-    def of(cls, errors: np.ndarray) -> ErrorStats:
-        """Statistics of ``errors`` ``(P,)``, P >= 1."""
-        e = np.asarray(errors, dtype=np.float64)
-        return cls(rmse=float(np.sqrt(np.mean(e**2))), mean=float(e.mean()), median=float(np.median(e)),
-                   std=float(e.std()), min=float(e.min()), max=float(e.max()), sse=float((e**2).sum()), n=len(e))
 
 
 @dataclass(frozen=True)
