@@ -242,3 +242,55 @@ def test_without_parallax_keyframes_keep_their_place_and_take_the_rotation_their
         truth = torch.from_numpy(np.linalg.inv(world.poses[0]) @ world.poses[seq])
         assert _rot_deg(graph.poses[k], truth) < 0.3, (seq, _rot_deg(graph.poses[k], truth))
         assert float(graph.poses[k][:3, 3].norm()) == 0.0
+
+
+def _flow(graph, i: int, j: int):
+    t = graph.targets(i, j)
+    return t.target.numpy(), t.confidence.numpy()
+
+
+def test_translation_is_told_from_a_turn_on_the_spot_by_the_flow_it_leaves_above_its_noise():
+    from services.ba.frontend.rotation import translates
+
+    sigma = 1.0 / 8  # FlowParams.fb_sigma (1 working px) in grid px
+    spin, _ = _profile_graph("spin", [0, 3, 6])  # 3 and 6 deg on the spot: every pixel moves, none by depth
+    walk, _ = _profile_graph("rot1", [0, 3, 6])  # 1 cm/frame sideways while yawing
+    intr = spin.intrinsics.numpy()
+    for k in (1, 2):
+        assert translates(*_flow(spin, 0, k), intr, 1, sigma, 1.5) is False
+        assert translates(*_flow(walk, 0, k), walk.intrinsics.numpy(), 1, sigma, 1.5) is True
+    # flow too broken to tell (confidence gone): no verdict either way
+    target, confidence = _flow(spin, 0, 2)
+    assert translates(target, confidence * 0.1, intr, 1, sigma, 1.5) is None
+
+
+def test_a_camera_turning_on_the_spot_starts_a_map_of_rotations_not_a_two_view_one():
+    from services.ba.core.params import BAParams
+
+    graph, world = _profile_graph("spin", [0, 3, 6])
+    assert init.turning(graph, InitParams())
+    assert init.start_map(graph, InitParams(), BAParams(), MotionParams()) is None  # no two-view start from a turn
+    walk, _ = _profile_graph("rot1", [0, 3, 6])
+    assert not init.turning(walk, InitParams())
+
+
+def test_keyframes_that_start_at_one_spot_may_move_a_little_without_a_jump():
+    """A map of rotations (every keyframe at one place): BA moving them by a hair is no jump. The median speed
+    was 0 there, any motion counted as infinite growth, and every window BA of a turn was refused."""
+    from services.ba.core.ba import BAState
+    from services.ba.core.params import FlowParams
+    from services.ba.frontend.graph import KeyframeGraph
+
+    graph = KeyframeGraph(torch.tensor([50.0, 50.0, 15.5, 11.5], dtype=torch.float64), (24, 32), FlowParams(),
+                          torch.device("cpu"), max_step_growth=4.0)
+    still = torch.eye(4, dtype=torch.float64).repeat(5, 1, 1)
+    disparity = torch.ones(5, 24, 32, dtype=torch.float64)  # depth 1: a hundredth of it is 0.01
+    nudged = still.clone()
+    nudged[:, 0, 3] = torch.tensor([0.0, 1e-4, -2e-4, 3e-4, 1e-4])
+    stamps = [0, 1, 2, 3, 4]
+    assert graph._jumped(BAState(still, disparity, graph.intrinsics), BAState(nudged, disparity, graph.intrinsics),
+                         stamps) is None
+    flown = still.clone()
+    flown[4, 0, 3] = 0.5  # half the scene's depth from nothing: still a jump
+    assert graph._jumped(BAState(still, disparity, graph.intrinsics), BAState(flown, disparity, graph.intrinsics),
+                         stamps) == 4

@@ -139,3 +139,13 @@ def test_hand_held_yaw_end_to_end_every_frame_posed(robustness, tmp_path):
     assert row.posed_pct == 100.0
     assert row.ate_pct_path < 1.5
     assert row.focal_err_pct < 2.0
+
+
+def test_a_spin_on_the_spot_end_to_end_keeps_its_rotations(robustness, tmp_path):
+    """spin (1 °/frame on the spot, nothing but rotation), 24 frames at 512x384, no calibration: every frame posed
+    and no frame's rotation off by more than 0.5 ° (0.02 ° measured). The two-view start used to take the turn's
+    flow for parallax and start a map from it: 14 ° off with 62 % of the frames posed here."""
+    row = robustness.run_profile("spin", 24, 512, 384, tmp_path)
+    print(row)
+    assert row.posed_pct == 100.0
+    assert row.max_rot_err_deg < 0.5

@@ -36,7 +36,7 @@ from services.common.bus import Bus
 from services.common.pca_codes import code_map, convert_codes
 from services.common.pca_fetch import BasisFetch
 from services.common.bus import Delivery, Inbox
-from services.common.lifecycle import nice_this_thread
+from services.common.lifecycle import MemoryRelease, nice_this_thread
 from services.common.restarts import Restarts, consumer_name
 from services.common.streams import hold, session_of
 from services.common.schema import (Credit, Eos, FrameLite, Graph, Intrinsics, Keyframe, KeyframeCodes, Message,
@@ -288,6 +288,7 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
     tracking = TrackingLoop(cfg.tracker(), bus, track_box, cfg.stream,
                             state.anchors, cfg.tracking_nice)
     restarted_mapstore = _watch_mapstores(bus, topic(keys.PROGRESS))
+    release = MemoryRelease(cfg.release_memory_period_s)
     mapstore_done = False
     tracking.start()
     if (ref := state.frontend.reference()) is not None:  # resumed: tracking starts from mapping's newest keyframe
@@ -305,6 +306,9 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
                                                          durable=checkpoints.durable))
                 next_progress = time.monotonic() + PROGRESS_PERIOD_S
             delivery = mapping.get(POLL_S)
+            if delivery is None:
+                for key, out in _refine_while_idle(state, (mapping, track_box), cfg):
+                    bus.publish(key, out)
             msg = delivery.msg if delivery is not None else None
             if isinstance(msg, Eos) and msg.stage == "features":
                 eos, msg = (msg, time.monotonic() + cfg.eos_wait_s), None
@@ -331,6 +335,7 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
                         tracking.set_reference(ref)
                     if checkpoints.due():
                         checkpoints.save(state)
+                    release.maybe()  # between two keyframes' BAs: no temporaries alive
                 if isinstance(msg, Keyframe) and msg.codes is not None and msg.pca_version not in state.bases:
                     state.pca_fetch.want(msg.pca_version)
             state.pca_fetch.run_due(bus, cfg.stream, state.bases, lambda basis: handle(state, basis, cfg))
@@ -344,9 +349,33 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
                     log.info("checkpoints", extra={"stream": cfg.stream, "written": checkpoints.written,
                                                    "seconds": round(checkpoints.seconds, 2)})
                 checkpoints.remove()  # the session's stream is done: nothing to resume
+                if cfg.release_memory_period_s > 0:
+                    release.now()  # the end-of-stream BA's temporaries, the stream's graph
     finally:
         tracking.stop()
     return state
+
+
+def _refine_while_idle(state: BaState, inboxes: tuple[Inbox, ...], cfg: BaSettings) -> Outputs:
+    """Mapping has nothing queued: a live stream's frames that tracking posed are aligned again with mapping's own
+    flow (``Frontend.refine_frame``), a few at a time, until a message comes for mapping or for tracking (the two
+    threads share the interpreter: tracking's frame must not wait behind a refinement); their revised poses go
+    out."""
+    out: Outputs = []
+    for _ in range(cfg.refine_frames_per_idle):
+        if any(box.qsize() for box in inboxes):
+            break
+        try:
+            update = state.frontend.refine_frame()
+        except (ValueError, RuntimeError) as exc:  # a refinement is optional: the tracked pose stands
+            log.warning("frame refinement failed", extra={"stream": state.stream, "error": str(exc)})
+            break
+        if update.poses is None:
+            break
+        out.append((keys.topic(state.stream, keys.POSE), Poses(
+            state.stream, int(update.poses.frame_seqs[-1]), time.time_ns(), frame_seqs=update.poses.frame_seqs,
+            stamps_ns=update.poses.stamps_ns, poses=update.poses.poses)))
+    return out
 
 
 def _seen_before(state: BaState, msg: Keyframe | FrameLite, resumed_at: int) -> bool:

@@ -100,6 +100,18 @@ class BaSettings(BASettings):
     mid-stream resumes in the same world frame; "" (``kmvipe run``): none. Compose and Kubernetes set a volume."""
     checkpoint_period_s: float = 2.0
     """At most one checkpoint per this many seconds (each is written after a keyframe's BA)."""
+    refine_frames_per_idle: int = 1
+    """Live streams: when mapping has nothing queued, up to this many frames that tracking posed are aligned again
+    with mapping's own flow before it looks at its inbox again (0: never; the end of stream still does)."""
+    global_ba_s: float = FrontendParams.global_ba_s
+    """The end-of-stream BA stops after the iteration that passes this many seconds (0: all
+    ``global_iterations``), so the end of a stream is bounded in time whatever the window holds."""
+    final_align_s: float = FrontendParams.final_align_s
+    """End of stream: how long frames still posed by tracking alone are aligned again with mapping's flow."""
+    release_memory_period_s: float = 10.0
+    """At most once per this many seconds, after a keyframe's BA, freed heap goes back to the kernel
+    (``lifecycle.release_free_memory``); 0: never. The allocator keeps freed heap for the BA's speed, and over a
+    long stream that heap fragments: without it ba grew +41 % from 1,000 to 10,000 frames (docs/BENCHMARKS.md)."""
 
     def tracker(self) -> "Tracker":
         """The frame-rate tracker with these settings."""
@@ -123,4 +135,5 @@ class BaSettings(BASettings):
             global_ba=self.ba_params(global_ba=True), flow=self.flow_params(), focal_after=self.focal_after,
             focal_until=self.focal_until, keep_keyframes=self.keep_keyframes,
             live_flow_downscale=self.live_flow_downscale, live_iterations=self.live_iterations,
-            live_max_deferred=self.live_max_deferred)
+            live_max_deferred=self.live_max_deferred, final_align_s=self.final_align_s,
+            global_ba_s=self.global_ba_s)

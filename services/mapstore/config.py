@@ -180,7 +180,6 @@ class MapstoreSettings(KmVipeSettings):
     """Surfaces nearer than (1 − this)·z are occluders, not contradictions (CarvingParams.occluder_margin)."""
     carve_min_code_reliability: float = 0.0
     """Reliability a view's cell needs for its codes to contradict a point (CarvingParams.min_code_reliability)."""
-    """Surfaces nearer than (1 − this)·z are occluders, not contradictions (CarvingParams.occluder_margin)."""
     device: str = "auto"
     """torch device for scoring."""
     store_images: bool = True
@@ -193,6 +192,10 @@ class MapstoreSettings(KmVipeSettings):
     answer_cache: int = Field(256, ge=0)
     """Query vectors whose findings are kept for the current map revision (a few kB each): a vector asked again
     before the map changes is answered without scoring. 0: every query scored."""
+    release_memory_period_s: float = Field(10.0, ge=0)
+    """At most once per this many seconds, between two batches, freed heap goes back to the kernel
+    (``lifecycle.release_free_memory``); 0: never. Re-fusion and exports free large arrays whose heap the allocator
+    would otherwise keep, fragmented, for the rest of the process."""
     export_dir: str = ""
     """When set, write map.ply, depth maps and COLMAP cameras here at end of stream."""
     upstream: str = "ba"

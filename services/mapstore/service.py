@@ -26,6 +26,7 @@ import numpy as np
 from services.common import keys
 from services.common.bus import Bus
 from services.common.errors import DecodeError, ServiceTimeout
+from services.common.lifecycle import MemoryRelease
 from services.common.pca_fetch import BasisFetch
 from services.common.restarts import consumer_name
 from services.common.streams import session_of
@@ -218,6 +219,7 @@ def run(cfg: MapstoreSettings, bus: Bus, stop: threading.Event, state: MapState 
         fetch.want(version)
     log.info("mapstore serving", extra={"stream": cfg.stream})
     last_report = 0.0
+    release = MemoryRelease(cfg.release_memory_period_s)
     carried = None  # a message of another session that ended a batch: the first of the next one
     while not stop.is_set():
         delivery, carried = carried or inbox.get(min(POLL_S, PROGRESS_S)), None
@@ -238,6 +240,7 @@ def run(cfg: MapstoreSettings, bus: Bus, stop: threading.Event, state: MapState 
                     if isinstance(msg, Keyframe):  # committed (fused at the batch's end): report at once
                         bus.publish(*progress_report(state, cfg, consumer))
                         last_report = time.monotonic()
+            release.maybe()  # between batches: the re-fusion's arrays are freed
         if time.monotonic() - last_report >= PROGRESS_S:  # heartbeat: the next one repeats it, no need to block
             bus.publish(*progress_report(state, cfg, consumer), drop_if_congested=True)
             last_report = time.monotonic()

@@ -20,7 +20,7 @@ Every pixel of every edge is processed in one batched tensor expression: no Pyth
 from __future__ import annotations
 
 import logging
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import torch
 
@@ -235,8 +235,11 @@ def _free_camera_indices(n_kf: int, params: BAParams, device) -> torch.Tensor:
     return free
 
 
-def run_ba(state: BAState, problem: BAProblem, params: BAParams) -> BAResult:
-    """Run ``params.iterations`` LM iterations; see the module docstring for the energy and gauge."""
+def run_ba(state: BAState, problem: BAProblem, params: BAParams,
+           should_stop: Callable[[], bool] | None = None) -> BAResult:
+    """Run ``params.iterations`` LM iterations; see the module docstring for the energy and gauge.
+    ``should_stop`` is asked after every iteration: True ends the solve there with the state reached (a caller's
+    time bound; LM's accepted states only ever lower the energy, so any prefix is a valid result)."""
     _check(state, problem)
     n, h, w = state.disparity.shape
     free = _free_camera_indices(n, params, state.poses.device)
@@ -274,6 +277,8 @@ def run_ba(state: BAState, problem: BAProblem, params: BAParams) -> BAResult:
             lm *= params.lm_up
             if lm > params.lm_max:
                 break
+        if should_stop is not None and it + 1 < params.iterations and should_stop():
+            break
     edge_w = _edge_weight(res, frozen, params)
     static = _static_weight(res, ark, problem, params, n).view(n, h, w)
     return BAResult(state, costs, edge_w.view(-1, h, w), static, frozen.alpha.view(-1, h, w))

@@ -115,6 +115,16 @@ class FramePoses:
             return None
         return graph.poses[graph.index(frame.anchor)] @ frame.anchor_from_cam
 
+    def unmeasured(self) -> list[int]:
+        """Frames posed without flow of mapping's own (a live stream's: anchored where tracking put them, or
+        interpolated by time), oldest first."""
+        return sorted(s for s, f in self.frames.items() if f.anchor is not None and not f.targets)
+
+    def measure(self, graph: KeyframeGraph, seq: int) -> torch.Tensor:
+        """Align frame ``seq`` to its bracketing keyframes with mapping's flow, whatever posed it before."""
+        self.frames[seq].interpolate_only = False
+        return self.align(graph, seq)
+
     def anchored_to(self, anchors: set[int]) -> list[int]:
         return [s for s, f in self.frames.items() if f.anchor in anchors]
 

@@ -16,6 +16,7 @@ from services.ba.frontend.edges import induced_flow_field, temporal_pairs
 
 logger = logging.getLogger(__name__)
 GRID = 8  # working pixels per grid cell (docs/CONVENTIONS.md)
+STILL_STEP = 0.01  # keyframe steps below this x the scene's median depth are never refused as jumps (_jumped)
 
 
 def grid_intrinsics(work: np.ndarray) -> torch.Tensor:
@@ -176,9 +177,10 @@ class KeyframeGraph:
         return BAState(torch.stack([self.poses[k] for k in window]),
                        torch.stack([self.disparity[k] for k in window]), self.intrinsics.clone())
 
-    def run(self, window: list[int], pairs: list[tuple[int, int]], params: BAParams) -> BAResult | None:
+    def run(self, window: list[int], pairs: list[tuple[int, int]], params: BAParams,
+            should_stop: Callable[[], bool] | None = None) -> BAResult | None:
         """BA over the keyframes at positions ``window`` (the first is the gauge) with edges ``pairs``; None (and
-        the state unchanged) when the solve failed or its result is implausible."""
+        the state unchanged) when the solve failed or its result is implausible. ``should_stop``: see ``run_ba``."""
         local = {k: n for n, k in enumerate(window)}
         dev = self.device
         ii = torch.tensor([local[a] for a, _ in pairs], dtype=torch.long, device=dev)
@@ -198,7 +200,7 @@ class KeyframeGraph:
         self.jumped_seq = None
         try:
             bounds = (self.focal_range[0] * self.first_focal, self.focal_range[1] * self.first_focal)
-            result = run_ba(start, BAProblem(ii, jj, targets, conf, codes, prior, mask, bounds), params)
+            result = run_ba(start, BAProblem(ii, jj, targets, conf, codes, prior, mask, bounds), params, should_stop)
         except (RuntimeError, IndexError) as exc:  # a degenerate window (singular or non-finite): keep its state
             logger.warning("BA failed; window state kept", extra={"keyframes": len(window), "error": str(exc)})
             return None
@@ -232,9 +234,15 @@ class KeyframeGraph:
         dt = torch.tensor(stamps, dtype=torch.float64, device=start.poses.device).diff().clamp_min(1.0)
         before = (start.poses[1:, :3, 3] - start.poses[:-1, :3, 3]).norm(dim=-1) / dt
         after = (state.poses[1:, :3, 3] - state.poses[:-1, :3, 3]).norm(dim=-1) / dt
-        floor = float(before.median())  # a speed may grow to max_step_growth x the window's median: under
-        # rotation a step that starts near zero legitimately grows (hand-held yaw: 22 of 27 BA results refused)
+        # a speed may grow to max_step_growth x the window's median: under rotation a step that starts near zero
+        # legitimately grows (hand-held yaw: 22 of 27 BA results refused). Or its mean (path / time), where that is
+        # higher: after a turn on the spot most steps are still, the median is ~0 and refused every result
+        floor = max(float(before.median()), float((before * dt).sum() / dt.sum()))
         growth = after / (self.max_step_growth * before.clamp_min(floor))
+        # a step shorter than a hundredth of the scene's depth moves no pixel by more than ~f/100 (under a grid
+        # px): no jump, however it grew from nothing (a camera turning on the spot: every step starts at 0)
+        depth = 1.0 / float(state.disparity.median().clamp_min(1e-12))
+        growth = torch.where(after * dt > STILL_STEP * depth, growth, torch.zeros_like(growth))
         return int(growth.argmax()) + 1 if bool((growth > 1).any()) else None
 
     def _store(self, window: list[int], result: BAResult, ii: torch.Tensor, conf: torch.Tensor) -> None:

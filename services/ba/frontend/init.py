@@ -14,7 +14,7 @@ from services.ba.frontend import motion
 from services.ba.frontend.edges import temporal_pairs
 from services.ba.frontend.graph import KeyframeGraph, working_intrinsics
 from services.ba.frontend.params import InitParams, MotionParams
-from services.ba.frontend.rotation import bearing_rotation
+from services.ba.frontend.rotation import bearing_rotation, translates
 
 logger = logging.getLogger(__name__)
 
@@ -145,7 +145,7 @@ def start_map(graph: KeyframeGraph, params: InitParams, ba_params: BAParams, mot
     if n < 2 or (n < params.min_keyframes and not force):
         return None
     flow = parallax(graph)
-    if flow < params.min_flow and not force:
+    if (flow < params.min_flow or translation(graph, params) is False) and not force:
         return None
     tg = graph.targets(0, n - 1)
     candidates = _candidates(tg, working_intrinsics(graph.intrinsics), params, n, force)
@@ -267,6 +267,22 @@ def _keep_scale(graph: KeyframeGraph, before: list[torch.Tensor]) -> None:
 def parallax(graph: KeyframeGraph) -> float:
     """Mean grid flow (grid px) between the first and the newest keyframe."""
     return _mean_grid_flow(graph.targets(0, len(graph) - 1).target.numpy())
+
+
+def translation(graph: KeyframeGraph, params: InitParams) -> bool | None:
+    """Whether the flow between the first and the newest keyframe shows translation, not only rotation
+    (:func:`rotation.translates`); None where the flow broke too far to tell."""
+    t = graph.targets(0, len(graph) - 1)
+    return translates(t.target.numpy(), t.confidence.numpy(), graph.intrinsics.cpu().numpy(), 1,
+                      graph.flow_params.fb_sigma / graph.flow_params.grid, params.min_parallax_ratio,
+                      params.min_confidence)
+
+
+def turning(graph: KeyframeGraph, params: InitParams) -> bool:
+    """The keyframes so far only turn on the spot: three or more, the first and newest far apart in the image
+    (``min_flow``) and no translation between them. Waiting for parallax would outlast the flow (beyond ~12 grid
+    px DIS loses a turn and its broken flow reads as parallax); the map starts as a rotation instead."""
+    return len(graph) >= 3 and parallax(graph) >= params.min_flow and translation(graph, params) is False
 
 
 def start_static(graph: KeyframeGraph) -> None:

@@ -27,6 +27,9 @@ class InitParams:
     max_keyframes: int = 6  # after a failed attempt with parallax, keyframes beyond this many slide out (oldest)
     max_pending_frames: int = 100  # frames waiting for a map without parallax beyond this: a static map starts
     min_flow: float = 2.0  # mean grid flow (grid px) between the first and the newest keyframe
+    min_parallax_ratio: float = 1.5  # ... of which the flow left after the best rotation must exceed this x the
+    # flow's own forward-backward noise (rotation.translates): a turn on the spot moves every pixel but gives no
+    # depth (spin: 0.6-0.7; a 4 deg/frame pan moving 0.5 cm/frame 2.3; walking 5 and more)
     min_inliers: int = 50  # essential-matrix inliers required
     ransac_px: float = 1.0  # RANSAC threshold of the essential matrix, working-resolution pixels
     min_confidence: float = 0.5  # flow confidence a grid cell needs to enter the two-view estimate
@@ -57,6 +60,11 @@ class FrontendParams:
     motion: MotionParams = field(default_factory=MotionParams)
     ba: BAParams = field(default_factory=lambda: BAParams(iterations=3, optimise_focal=True))  # per new keyframe
     global_ba: BAParams = field(default_factory=lambda: BAParams(iterations=10, optimise_focal=True))  # end
+    global_ba_s: float = 0.0  # the end-of-stream BA stops after the iteration that passes this many seconds (0:
+    # runs its iterations): end-of-stream work bounded by time, whatever the window holds
+    final_align_s: float = 8.0  # at end of stream, frames posed without mapping's own flow (tracked on a live
+    # stream, or interpolated by time) are aligned again to their final keyframes, oldest first, for at most this
+    # long: tracking's cheap flow leaves them ~2 cm off on the synthetic world where keyframes are at 3 mm
     flow: FlowParams = field(default_factory=FlowParams)
     focal_restarts: tuple[float, ...] = (0.7, 1.0, 1.4)  # at focal_after keyframes the map starts again from
     # these x the focal guess, focal free; the lowest BA cost is kept (Frontend._calibrate_focal)

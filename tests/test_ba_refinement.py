@@ -1,0 +1,129 @@
+"""Live mapping's later work, bounded: frames tracking posed are aligned again with mapping's own flow (in spare
+time and at the end of stream, within a time bound), and the end-of-stream BA stops where its caller's bound says.
+Checked against the synthetic world's exact trajectory."""
+from __future__ import annotations
+
+import copy
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from services.ba.core import ba, se3, synthetic
+from services.ba.core.params import BAParams, RobustParams
+from services.ba.frontend.frontend import FrameInput, Frontend, KeyframeInput
+from services.ba.frontend.params import FrontendParams
+from services.common.schema import FrameLite, Keyframe
+from tests.test_ba_pipeline_synth import ate_of, synth_stream
+
+L2 = RobustParams(use_ark=False, fixed_alpha=2.0)
+
+
+def _perturbed_window(seed: int = 1):
+    win = synthetic.make_window(n=6, h=24, w=32, seed=0)
+    gen = torch.Generator().manual_seed(seed)
+    poses = synthetic.perturb_poses(win.truth.poses, 0.05, 2.0, gen)
+    start = ba.BAState(poses, torch.full_like(win.truth.disparity, float(win.truth.disparity.mean())),
+                       win.truth.intrinsics.clone())
+    return win, start
+
+
+def test_a_stopped_solve_ends_where_it_was_told_with_a_lower_energy():
+    win, start = _perturbed_window()
+    params = BAParams(iterations=8, robust=L2, rel_tol=0.0)
+    asked = []
+    stopped = ba.run_ba(start, win.problem, params, should_stop=lambda: asked.append(1) or len(asked) >= 2)
+    assert len(asked) == 2  # asked after each iteration, and it stopped at the first True
+    assert len(stopped.costs) <= 3 and stopped.costs[-1] < stopped.costs[0]
+    full = ba.run_ba(start, win.problem, params)
+    assert full.costs[-1] < stopped.costs[-1]  # the bound really cut the solve short
+    never = ba.run_ba(start, win.problem, params, should_stop=lambda: False)
+    assert never.costs == full.costs
+    torch.testing.assert_close(never.state.poses, full.state.poses)
+
+
+def _live_frontend(params: FrontendParams, msgs, offset_m: float):
+    """A frontend fed as the ba service feeds it from a live camera: keyframes real-time, every frame anchored
+    where 'tracking' put it: the exact relative pose to its keyframe, moved by ``offset_m`` (tracking's error)."""
+    fe = Frontend(params)
+    last_kf = None
+    for msg in msgs[:-1]:
+        if isinstance(msg, Keyframe):
+            fe.add_keyframe(KeyframeInput(msg.seq, msg.t_ns, msg.image, msg.intrinsics, msg.codes, realtime=True))
+            last_kf = msg.seq
+        elif isinstance(msg, FrameLite) and fe.initialised:
+            k = fe.graph.index(last_kf)
+            rel = se3.inverse(fe.graph.poses[k]) @ fe.graph.poses[k]  # identity, in the graph's dtype
+            rel = rel.clone()
+            rel[:3, 3] += torch.tensor([offset_m, -offset_m, offset_m], dtype=torch.float64)
+            fe.add_frame(FrameInput(msg.seq, msg.t_ns, msg.image, (last_kf, rel)))
+    return fe
+
+
+def _frame_ate(world, fe: Frontend) -> float:
+    final = fe._update(list(range(len(fe.graph))), every_frame=True).poses
+    frames = [i for i, s in enumerate(final.frame_seqs) if s not in fe.graph.seqs]
+    return ate_of(world, final.frame_seqs[frames], final.poses[frames])[0]
+
+
+@pytest.fixture(scope="module")
+def live():
+    """(world, a live frontend at the end of its stream, before finish); tests take copies."""
+    world, msgs = synth_stream(n_frames=60, rendered=24, every=4, width=256)
+    # the focal is exact here: no calibration restarts, and a short end-of-stream BA (what is tested is elsewhere)
+    params = FrontendParams(focal_after=1000, global_ba=BAParams(iterations=3))
+    return world, _live_frontend(params, msgs, offset_m=0.05)
+
+
+def _copy(fe: Frontend, **params) -> Frontend:
+    fe = copy.deepcopy(fe)
+    fe.params = dataclasses.replace(fe.params, **params)
+    return fe
+
+
+def test_spare_time_aligns_tracked_frames_again_and_sends_their_revised_poses(live):
+    world, fe = live
+    fe = _copy(fe)
+    assert fe.initialised
+    held = [s for s, f in fe.frames.frames.items() if f.anchor is not None and not f.targets]
+    inside = [s for s in held if s < fe.graph.seqs[-1]]
+    assert inside, "frames between keyframes were tracked"
+    before = _frame_ate(world, fe)
+    revised = []
+    while (update := fe.refine_frame()).poses is not None:
+        revised += update.poses.frame_seqs.tolist()
+        assert len(revised) <= len(held)
+    assert revised == sorted(inside)  # oldest first, only those with keyframes on both sides, each once
+    after = _frame_ate(world, fe)
+    print(f"tracked frames' ATE {before:.4f} m -> {after:.4f} m after mapping aligned them again")
+    assert after < 0.5 * before
+
+
+def test_end_of_stream_aligns_what_is_left_within_its_time_bound(live):
+    world, fe = live
+    unbounded = _copy(fe, final_align_s=1e9)
+    left = len(unbounded.frames.unmeasured())
+    unbounded.finish()
+    assert not unbounded.frames.unmeasured()
+    no_time = _copy(fe, final_align_s=0.0)
+    no_time.finish()
+    assert len(no_time.frames.unmeasured()) == left  # a bound of 0 s leaves tracking's poses as they were
+    assert _frame_ate(world, unbounded) < 0.5 * _frame_ate(world, no_time)
+
+
+def test_end_of_stream_ba_bounded_in_time_still_finishes(live):
+    world, fe = live
+    fe = _copy(fe, global_ba_s=1e-9, final_align_s=0.0)
+    expected = sorted(set(fe.graph.seqs) | set(fe.frames.frames))
+    calls = []
+    original = fe.graph.run
+
+    def run(window, pairs, params, should_stop=None):
+        calls.append(should_stop)
+        return original(window, pairs, params, should_stop)
+
+    fe.graph.run = run
+    final = fe.finish()
+    assert len(calls) == 1 and calls[0] is not None and calls[0]()  # the bound reached the solve, already past
+    assert np.isfinite(final.poses.poses).all() and final.poses.frame_seqs.tolist() == expected
