@@ -75,4 +75,5 @@ def test_period_zero_never_releases(monkeypatch):
     for t in (1.0, 1e6):
         now[0] = t
         assert not release.maybe()
+    release.now()  # an explicit release too (a stream's end): releases are off
     assert not calls

@@ -42,7 +42,7 @@ from services.common.streams import hold, session_of
 from services.common.schema import (Credit, Eos, FrameLite, Graph, Intrinsics, Keyframe, KeyframeCodes, Message,
                                     PcaBasis, Poses)
 from services.ba.checkpoint import Checkpointer
-from services.ba.frontend.frontend import FrameInput, Frontend, KeyframeInput, Update
+from services.ba.frontend.frontend import FrameInput, Frontend, KeyframeInput, PoseUpdate, Update
 from services.ba.frontend.graph import NativeCodes
 from services.ba.settings import BaSettings
 from services.ba.tracking import TrackingLoop
@@ -239,13 +239,16 @@ def _outputs(state: BaState, msg: Message, update: Update, final: bool) -> Outpu
             height=height, updated_seqs=g.updated_seqs, disparities=g.disparities, static_weights=g.static_weights,
             confidence=g.confidence, metric=g.metric, final=final)))
     if update.poses is not None:
-        p = update.poses
-        out.append((keys.topic(msg.stream, keys.POSE), Poses(msg.stream, msg.seq, msg.t_ns, frame_seqs=p.frame_seqs,
-                                                             stamps_ns=p.stamps_ns, poses=p.poses, final=final)))
+        out.append(_poses_out(msg.stream, msg.seq, msg.t_ns, update.poses, final))
     if update.intrinsics_changed or (final and fe.intrinsics is not None):
         out.append((keys.topic(msg.stream, keys.INTRINSICS), Intrinsics(
             msg.stream, msg.seq, msg.t_ns, intrinsics=fe.intrinsics, width=width, height=height)))
     return out
+
+
+def _poses_out(stream: str, seq: int, t_ns: int, poses: PoseUpdate, final: bool) -> tuple[str, Poses]:
+    return keys.topic(stream, keys.POSE), Poses(stream, seq, t_ns, frame_seqs=poses.frame_seqs,
+                                                stamps_ns=poses.stamps_ns, poses=poses.poses, final=final)
 
 
 HANDLERS = {Keyframe: handle_keyframe, FrameLite: handle_frame_lite, KeyframeCodes: handle_codes, PcaBasis: handle_pca,
@@ -349,8 +352,7 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
                     log.info("checkpoints", extra={"stream": cfg.stream, "written": checkpoints.written,
                                                    "seconds": round(checkpoints.seconds, 2)})
                 checkpoints.remove()  # the session's stream is done: nothing to resume
-                if cfg.release_memory_period_s > 0:
-                    release.now()  # the end-of-stream BA's temporaries, the stream's graph
+                release.now()  # the end-of-stream BA's temporaries, the stream's graph
     finally:
         tracking.stop()
     return state
@@ -372,9 +374,7 @@ def _refine_while_idle(state: BaState, inboxes: tuple[Inbox, ...], cfg: BaSettin
             break
         if update.poses is None:
             break
-        out.append((keys.topic(state.stream, keys.POSE), Poses(
-            state.stream, int(update.poses.frame_seqs[-1]), time.time_ns(), frame_seqs=update.poses.frame_seqs,
-            stamps_ns=update.poses.stamps_ns, poses=update.poses.poses)))
+        out.append(_poses_out(state.stream, int(update.poses.frame_seqs[-1]), time.time_ns(), update.poses, False))
     return out
 
 

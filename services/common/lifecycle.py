@@ -2,9 +2,11 @@
 from __future__ import annotations
 
 import ctypes
+import gc
 import logging
 import signal
 import threading
+import time
 
 log = logging.getLogger(__name__)
 
@@ -69,8 +71,6 @@ def release_free_memory() -> bool:
     end-of-stream BA) stays resident, and over a long stream the heap fragments into holes nobody reuses (ba: +41 %
     from 1,000 to 10,000 synthetic frames in three steps). Called between bursts, never inside one: the next
     burst faults its pages in again (~0.2 s per 500 MB). Returns whether anything was released."""
-    import gc
-
     gc.collect()  # cycles hold tensors and arrays too; free them before trimming
     try:
         libc = ctypes.CDLL(None)
@@ -86,8 +86,6 @@ class MemoryRelease:
     point the caller chooses (between two units of work)."""
 
     def __init__(self, period_s: float, clock=None):
-        import time
-
         self.period_s = period_s
         self._clock = clock or time.monotonic
         self._last = self._clock()
@@ -101,6 +99,9 @@ class MemoryRelease:
         return True
 
     def now(self) -> None:
+        """Release now (after a burst the caller knows of, e.g. a stream's end), unless releases are off."""
+        if self.period_s <= 0:
+            return
         release_free_memory()
         self._last = self._clock()
         self.count += 1

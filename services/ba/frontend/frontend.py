@@ -241,18 +241,16 @@ class Frontend:
         self._align_unmeasured(time.monotonic() + self.params.final_align_s)
         return self._update(list(range(len(g))), every_frame=True)
 
-    def _align_unmeasured(self, deadline: float) -> int:
+    def _align_unmeasured(self, deadline: float) -> None:
         """Frames still held whose pose no flow of mapping's measured are aligned to their final keyframes, oldest
-        first, until ``deadline`` (time.monotonic()). Returns how many."""
-        todo, done = self.frames.unmeasured(), 0
-        for seq in todo:
+        first, until ``deadline`` (time.monotonic())."""
+        todo = self.frames.unmeasured()
+        for done, seq in enumerate(todo):
             if time.monotonic() >= deadline:
                 logger.info("end of stream: frames left with tracking's poses (time bound)",
                             extra={"aligned": done, "left": len(todo) - done})
                 break
             self.frames.measure(self.graph, seq)
-            done += 1
-        return done
 
     def refine_frame(self) -> Update:
         """Mapping's spare time on a live stream: the oldest frame whose pose no flow of mapping's measured yet
