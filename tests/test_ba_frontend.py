@@ -294,3 +294,30 @@ def test_keyframes_that_start_at_one_spot_may_move_a_little_without_a_jump():
     flown[4, 0, 3] = 0.5  # half the scene's depth from nothing: still a jump
     assert graph._jumped(BAState(still, disparity, graph.intrinsics), BAState(flown, disparity, graph.intrinsics),
                          stamps) == 4
+
+
+def test_a_keyframe_after_frames_merged_away_is_judged_by_speed_not_step_length():
+    """A live stream whose mapping fell behind merges keyframes into frames, so the next mapped keyframe may be
+    several frames past the one before. At the same speed its step is several times the recent steps, and the
+    plausibility check must not refuse it (a refusal replaced KITTI 07 live keyframes with a shortened prediction
+    and broke the map); a step far faster than the recent speed is still refused, and the prediction that
+    replaces it continues the recent motion over the whole gap."""
+    fe = Frontend()
+    fe.add_keyframe(KeyframeInput(0, 0, np.zeros((64, 96, 3), np.uint8), np.array([80.0, 80.0, 47.5, 31.5])))
+    g = fe.graph
+    second = 100_000_000  # 10 Hz frames, one keyframe per frame
+    for k in range(1, 6):
+        pose = torch.eye(4, dtype=torch.float64)
+        pose[2, 3] = 1.0 * k  # 1 m per frame, straight ahead
+        g.append(k, k * second, np.zeros((64, 96), np.uint8), None, None, pose, torch.ones(8, 12, dtype=torch.float64))
+    gap = 7  # frames 6-11 merged away: keyframe 12 comes 7 frames after keyframe 5
+    pose = torch.eye(4, dtype=torch.float64)
+    pose[2, 3] = 5.0 + gap
+    g.append(12, 12 * second, np.zeros((64, 96), np.uint8), None, None, pose, torch.ones(8, 12, dtype=torch.float64))
+    k = len(g) - 1
+    assert fe._plausible_step(pose, k)  # 7 m after 7 frames at 1 m per frame; 7x the last step
+    flown = pose.clone()
+    flown[2, 3] = 5.0 + 5 * gap  # 5 m per frame over the gap
+    assert not fe._plausible_step(flown, k)
+    predicted = fe._bounded_prediction(k)
+    assert float(predicted[2, 3]) == pytest.approx(5.0 + gap, rel=1e-6)

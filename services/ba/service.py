@@ -23,6 +23,7 @@ A version no ``pca`` message brought (missed while down, or lost) is asked of fe
 from __future__ import annotations
 
 import logging
+import sys
 import threading
 import time
 from collections import Counter
@@ -298,6 +299,7 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
         tracking.set_reference(ref)
     bus.ready()
     nice_this_thread(cfg.mapping_nice)
+    sys.setswitchinterval(cfg.switch_interval_s)  # tracking's thread waits at most this for the interpreter
     log.info("ba ready", extra={"stream": cfg.stream, "device": str(state.frontend.device)})
     eos: tuple[Eos, float] | None = None  # features' EOS waiting for the keyframes still in flight
     next_progress = 0.0
@@ -329,6 +331,10 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
                 began = time.monotonic()
                 for key, out in handle(state, msg, cfg):
                     bus.publish(key, out)
+                if isinstance(msg, Keyframe):
+                    log.debug("keyframe handled", extra={"stream": msg.stream, "seq": msg.seq,
+                                                         "backlog": state.keyframe_backlog,
+                                                         "seconds": round(time.monotonic() - began, 3)})
                 if isinstance(msg, Keyframe) and cfg.mapping_min_seconds > 0:
                     stop.wait(max(0.0, began + cfg.mapping_min_seconds - time.monotonic()))
                 if isinstance(msg, Keyframe):

@@ -7,6 +7,7 @@ this class adds the service and frontend ones and turns everything into :class:`
 from __future__ import annotations
 
 import dataclasses
+from typing import Literal
 
 from pydantic_settings import SettingsConfigDict
 
@@ -64,15 +65,23 @@ class BaSettings(BASettings):
     the graph, so keyframes stay close enough for their flow."""
     live_max_deferred: int = FrontendParams.live_max_deferred
     """Real-time streams: keyframes in a row that may leave their window BA to a later one."""
-    realtime_keyframe_backlog: int = 24
+    realtime_keyframe_backlog: int = 64
     """Real-time streams: when this many keyframes wait for mapping, the oldest is merged into the map as a
-    frame (posed, not a BA keyframe) instead of queueing without bound. Lossless streams map every keyframe."""
+    frame (posed, not a BA keyframe) instead of queueing without bound. Lossless streams map every keyframe.
+    Merging is the last resort: a keyframe merged leaves its neighbours twice as far apart for DIS, and on KITTI 07
+    at 10 Hz on 2 cores merging from 24 queued broke the map (8-28 m), while queueing up to 55 ended at 0.46-0.67 m."""
     realtime_max_merged: int = 1
     """At most this many keyframes in a row are merged; then one is mapped whatever the backlog."""
     live_flow_downscale: int = FrontendParams.live_flow_downscale
     """Real-time streams: keyframe edge flows at 1/this of the working size (mapping keeps up with a live camera)."""
     live_iterations: int = FrontendParams.live_iterations
     """Real-time streams: LM iterations of the window BA per keyframe."""
+    live_flow_preset: Literal["ultrafast", "fast", "medium"] = FrontendParams.live_flow_preset
+    """Real-time streams: OpenCV DIS preset of keyframe edge flows."""
+    live_window: int = FrontendParams.live_window
+    """Real-time streams: keyframes in the sliding window BA (lossless streams: ``window``)."""
+    live_calibration: Literal["always", "when_undetermined"] = FrontendParams.live_calibration
+    """Real-time streams: the focal restarts run always, or only when the map's own BA ends at a focal bound."""
     mapping_min_seconds: float = 0.0
     """Each keyframe's mapping takes at least this long: a slow CPU on demand (tests of back-pressure)."""
     tracking_backlog: int = 3
@@ -91,6 +100,11 @@ class BaSettings(BASettings):
     """Niceness of the tracking thread (Linux; per thread). Tracking comes first on a shared CPU."""
     mapping_nice: int = 5
     """Niceness of the mapping thread: behind tracking, ahead of the semantics backbone (features' ``semantics_nice``)."""
+    switch_interval_s: float = 0.0005
+    """Python's thread switch interval in the ba process (``sys.setswitchinterval``; Python's default is 5 ms).
+    Tracking and mapping share one interpreter, and a frame's tracking takes the interpreter hundreds of times:
+    each wait of up to one interval adds to its latency (KITTI 07 live, 2 cores: p99 789 ms at 5 ms, 308 ms at
+    0.5 ms in back-to-back runs)."""
     eos_wait_s: float = 30.0
     """How long features' end of stream waits for keyframes it announced that have not arrived."""
     inbox_size: int = 4096
@@ -136,4 +150,6 @@ class BaSettings(BASettings):
             focal_until=self.focal_until, keep_keyframes=self.keep_keyframes,
             live_flow_downscale=self.live_flow_downscale, live_iterations=self.live_iterations,
             live_max_deferred=self.live_max_deferred, final_align_s=self.final_align_s,
+            live_window=self.live_window, live_flow_preset=self.live_flow_preset,
+            live_calibration=self.live_calibration,
             global_ba_s=self.global_ba_s)

@@ -28,7 +28,7 @@ from services.ba.frontend import edges, init, motion
 from services.ba.frontend.frames import FramePoses, FrameRecord
 from services.ba.frontend.graph import GRID, KeyframeGraph, NativeCodes, grid_intrinsics, working_intrinsics
 from services.ba.frontend.params import FrontendParams
-from services.ba.frontend.tracker import Reference, propagate_disparity
+from services.ba.frontend.tracker import MAX_EXTRAPOLATION, Reference, propagate_disparity
 
 logger = logging.getLogger(__name__)
 
@@ -109,6 +109,7 @@ class Frontend:
         k = g.append(kf.seq, kf.t_ns, grey, codes, prior, pose, disp, kf.native_codes)
         self._live = kf.realtime
         g.flow_downscale = self.params.live_flow_downscale if kf.realtime else 1
+        g.flow_preset = self.params.live_flow_preset if kf.realtime else None
         try:
             return self._integrate(k, kf.defer_ba)
         except Exception:
@@ -314,36 +315,46 @@ class Frontend:
         pose = res.pose if res.ok else g.poses[k]
         g.poses[k] = pose if self._plausible_step(pose, k) else self._bounded_prediction(k)
 
-    def _recent_step(self, k: int) -> float:
-        """Median distance between consecutive keyframes among the six before ``k``."""
+    def _recent_speed(self, k: int) -> float:
+        """Median speed (length per nanosecond) between consecutive keyframes among the six before ``k``."""
         g = self.graph
-        centres = torch.stack([g.poses[i][:3, 3] for i in range(max(0, k - 6), k)])
-        return float((centres[1:] - centres[:-1]).norm(dim=-1).median())
+        first = max(0, k - 6)
+        centres = torch.stack([g.poses[i][:3, 3] for i in range(first, k)])
+        dt = torch.tensor(g.stamps[first:k], dtype=torch.float64, device=centres.device).diff().clamp_min(1.0)
+        return float(((centres[1:] - centres[:-1]).norm(dim=-1) / dt).median())
+
+    def _gap(self, k: int) -> float:
+        return float(max(1, self.graph.stamps[k] - self.graph.stamps[k - 1]))
 
     def _plausible_step(self, pose: torch.Tensor, k: int) -> bool:
         """Motion-only alignment of a keyframe whose flow barely constrains it (near objects lost by DIS, a
         forward motion along the depth ambiguity) can slide far along its free direction; kept, that step would
-        be repeated by every later constant-velocity prediction. Its step must stay within ``max_step_growth``
-        times the median of the previous steps."""
+        be repeated by every later constant-velocity prediction. Its speed must stay within ``max_step_growth``
+        times the median of the previous steps' (speeds, not lengths: a live stream's keyframes merged as frames
+        leave gaps of several frames between mapped keyframes)."""
         if k < 3:
             return True
         step = float((pose[:3, 3] - self.graph.poses[k - 1][:3, 3]).norm())
-        return step <= self.params.max_step_growth * self._recent_step(k)
+        return step <= self.params.max_step_growth * self._recent_speed(k) * self._gap(k)
 
     def _bounded_prediction(self, k: int) -> torch.Tensor:
-        """The previous keyframe's motion repeated, its translation shortened to the recent median step."""
+        """The previous keyframe's motion continued over this keyframe's time gap, its translation no longer than
+        the recent median speed allows."""
         g = self.graph
-        rel = se3.inverse(g.poses[k - 2]) @ g.poses[k - 1]
-        length = float(rel[:3, 3].norm())
-        if length > 0:
+        span = float(max(1, g.stamps[k - 1] - g.stamps[k - 2]))
+        twist = se3.log(se3.inverse(g.poses[k - 2]) @ g.poses[k - 1])
+        rel = se3.exp(min(self._gap(k) / span, MAX_EXTRAPOLATION) * twist)
+        length, allowed = float(rel[:3, 3].norm()), self._recent_speed(k) * self._gap(k)
+        if length > allowed > 0:
             rel = rel.clone()
-            rel[:3, 3] *= min(1.0, self._recent_step(k) / length)
+            rel[:3, 3] *= allowed / length
         logger.info("keyframe pose implausible; bounded constant-velocity prediction kept", extra={"seq": g.seqs[k]})
         return se3.orthonormalize(g.poses[k - 1] @ rel)
 
     def _window(self) -> list[int]:
         n = len(self.graph)
-        return list(range(max(0, n - self.params.graph.window), n))
+        size = self.params.live_window if self._live else self.params.graph.window
+        return list(range(max(0, n - size), n))
 
     def _add_proximity(self, k: int) -> None:
         gp, g = self.params.graph, self.graph
@@ -429,7 +440,9 @@ class Frontend:
         self._calibrated = True
         ba = dataclasses.replace(p.ba, optimise_focal=True, iterations=p.init.iterations)
         restarts = p.live_focal_restarts if self._live else p.focal_restarts
-        if init.calibrate_focal(self.graph, p.init, ba, p.motion, restarts) is not None and not self._live:
+        only_undetermined = self._live and p.live_calibration == "when_undetermined"
+        if init.calibrate_focal(self.graph, p.init, ba, p.motion, restarts, only_undetermined) is not None \
+                and not self._live:
             # the restarted map is in the scale of the old one (init._keep_scale), so a live stream's frames keep
             # their anchors: their poses went out when tracked, and aligning them all again would stall mapping
             self.frames.unanchor()

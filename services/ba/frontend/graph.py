@@ -81,6 +81,7 @@ class KeyframeGraph:
         # camera's mapping: 4x less DIS per edge); grid coordinates come out the same, so cached targets of
         # either size mix in one BA
         self.flow_downscale = 1
+        self.flow_preset: str | None = None  # DIS preset of new edge flows instead of flow_params' (live streams)
         self._small: dict[int, np.ndarray] = {}  # seq -> grey image at 1/flow_downscale
 
     def __len__(self) -> int:
@@ -146,6 +147,8 @@ class KeyframeGraph:
             # in the pixels of that size
             params = self.flow_params if scale == 1 else replace(
                 self.flow_params, grid=self.flow_params.grid // scale, fb_sigma=self.flow_params.fb_sigma / scale)
+            if self.flow_preset is not None:
+                params = replace(params, preset=self.flow_preset)
             # both directions at once: the reverse edge is (almost) always asked for too (temporal edges come
             # in pairs), and its two flows are these
             there, back = core_flow.pair_targets(self._image(i), self._image(j), params, fwd, bwd)

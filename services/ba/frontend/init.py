@@ -216,20 +216,23 @@ def _seed_and_adjust(graph: KeyframeGraph, start: TwoView, ba_params: BAParams, 
 
 
 def calibrate_focal(graph: KeyframeGraph, params: InitParams, ba_params: BAParams, motion_params: MotionParams,
-                    ratios: tuple[float, ...]) -> float | None:
+                    ratios: tuple[float, ...], only_undetermined: bool = False) -> float | None:
     """Start the map again from ``ratios`` x the focal guess (``ba_params`` with the focal free) and keep the
     lowest BA cost, the map as it is (adjusted the same way) included. Returns the winning ratio, or None when the
     map as it was won. Two keyframes cannot tell focal lengths apart, six with rotation can; and incremental BA
     started far above the true focal runs further away (hand-held desk, 83 deg camera from the 60 deg guess: to the
     upper bound; restarted: 429 px, true 420.5). A start whose focal ends at a bound is not one the data
-    determined (forward motion: KITTI's restarts fall to the lower bound at a lower cost) and is not taken."""
+    determined (forward motion: KITTI's restarts fall to the lower bound at a lower cost) and is not taken.
+    ``only_undetermined``: the restarts run only when the map as it is ends at a bound (a live camera's mapping
+    cannot stall for them where its own BA found a focal)."""
     everything = list(range(len(graph)))
     result = graph.run(everything, temporal_pairs(everything, 2), ba_params)
     best = (float("inf") if result is None else float(result.costs[-1]), None, graph.snapshot())
     as_is = [p.clone() for p in graph.poses]
     aspect = float(graph.intrinsics[1] / graph.intrinsics[0])
     low, high = (r * graph.first_focal for r in graph.focal_range)
-    for ratio in ratios:
+    determined = result is not None and low * 1.02 < float(graph.intrinsics[0]) < high / 1.02
+    for ratio in () if only_undetermined and determined else ratios:
         graph.intrinsics = graph.intrinsics.clone()
         graph.intrinsics[0], graph.intrinsics[1] = graph.first_focal * ratio, graph.first_focal * ratio * aspect
         cost = start_map(graph, params, ba_params, motion_params, force=True)

@@ -81,9 +81,18 @@ class FrontendParams:
     # (bench/frontend.py; docs/BENCHMARKS.md)
     live_flow_downscale: int = 2  # keyframes of a real-time stream get their edge flows at 1/this of the working
     # size (DIS 52 -> 12 ms per flow on KITTI): a live camera's mapping must keep up with its keyframes
+    live_flow_preset: str = "ultrafast"  # DIS preset of a real-time stream's keyframe edge flows: 10.6 ms per
+    # KITTI flow at half the working size against medium's 25 ms (one thread); bench/frontend.py --track --live
+    # --map-lag 2 on KITTI 07: edge flows 18.7 -> 7.7 s, ATE 0.437 -> 0.481 m
     live_iterations: int = 3  # LM iterations of the window BA per real-time keyframe
     live_max_deferred: int = 3  # a keyframe may leave its window BA to a later one (KeyframeInput.defer_ba) at
     # most this many times in a row
+    live_window: int = 12  # keyframes in a real-time stream's sliding window: BA cost grows with the window's
+    # edges (bench/ba.py: 0.13 s for 10 keyframes, 0.35 s for 25), and mapping that falls behind a camera leaves
+    # tracking on a keyframe ever further back; the end-of-stream BA still spans every held keyframe
+    live_calibration: str = "when_undetermined"  # a real-time stream's focal restarts (focal_after keyframes):
+    # "always" as a lossless stream, or only "when_undetermined" (the map as it is ends its BA at a focal bound),
+    # since each restart stalls mapping (KITTI 07, 2 cores: 8 s of stall and 44 keyframes queued behind it)
     focal_range: tuple[float, float] = (0.36, 1.75)  # BA keeps the focal inside this x the first guess (60 deg
     # across the longer side): 115 deg to 36 deg, so 40-110 deg cameras fit. A bound constrains the focal; it never
     # throws a BA result away (the old refusal outside 0.6-1.6 x refused TartanAir's true 90 deg focal, 0.58 x)
