@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Literal
 
+from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
 from services.ba.core.params import FlowParams
@@ -100,7 +101,7 @@ class BaSettings(BASettings):
     """Niceness of the tracking thread (Linux; per thread). Tracking comes first on a shared CPU."""
     mapping_nice: int = 5
     """Niceness of the mapping thread: behind tracking, ahead of the semantics backbone (features' ``semantics_nice``)."""
-    switch_interval_s: float = 0.0005
+    switch_interval_s: float = Field(0.0005, gt=0)
     """Python's thread switch interval in the ba process (``sys.setswitchinterval``; Python's default is 5 ms).
     Tracking and mapping share one interpreter, and a frame's tracking takes the interpreter hundreds of times:
     each wait of up to one interval adds to its latency (KITTI 07 live, 2 cores: p99 789 ms at 5 ms, 308 ms at
