@@ -109,7 +109,9 @@ class Frontend:
         k = g.append(kf.seq, kf.t_ns, grey, codes, prior, pose, disp, kf.native_codes)
         self._live = kf.realtime
         g.flow_downscale = self.params.live_flow_downscale if kf.realtime else 1
-        g.flow_preset = self.params.live_flow_preset if kf.realtime else None
+        # the cheap preset only refines flow the map predicts; the two-view start has no prediction to begin from
+        # (ultrafast alone failed it on 128x96 live flows)
+        g.flow_preset = self.params.live_flow_preset if kf.realtime and self.initialised else None
         try:
             return self._integrate(k, kf.defer_ba)
         except Exception:
