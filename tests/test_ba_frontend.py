@@ -34,6 +34,21 @@ def test_motion_only_alignment_recovers_a_perturbed_pose():
     assert _rot_deg(res.pose, truth.poses[2]) < 1e-5
 
 
+def test_motion_only_alignment_stops_once_a_step_moves_nothing_and_lands_where_all_steps_do():
+    """Tracking runs it on every frame of a live camera: the steps after convergence are pure cost."""
+    win = synthetic.make_window(n=3, h=24, w=32, seed=4, surface="room")
+    truth, prob = win.truth, win.problem
+    rows = [int(e) for e in range(len(prob.ii)) if int(prob.jj[e]) == 2]
+    start = synthetic.perturb_poses(truth.poses, 0.02, 1.0, torch.Generator().manual_seed(2))[2]
+    args = (truth.poses[prob.ii[rows]], truth.disparity[prob.ii[rows]], prob.targets[rows], prob.confidence[rows],
+            truth.intrinsics)
+    early = motion.align(start, *args, MotionParams())
+    every = motion.align(start, *args, MotionParams(step_tol=0.0))
+    assert early.ok and every.ok and every.steps == MotionParams().iterations
+    assert early.steps < every.steps
+    assert float((early.pose - every.pose).abs().max()) < 1e-6
+
+
 def test_motion_only_alignment_refuses_without_evidence():
     win = synthetic.make_window(n=2, h=8, w=8, seed=0, surface="room")
     t = win.problem

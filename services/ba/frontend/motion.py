@@ -21,6 +21,7 @@ class MotionResult(NamedTuple):
     rms: float  # weighted RMS flow residual at the result (grid px)
     weight: float  # total weight of the residuals used (about the number of trusted pixels)
     ok: bool  # False when too little weight was left to align (pose is then the initial one)
+    steps: int = 0  # Gauss-Newton steps taken (at most MotionParams.iterations)
 
 
 def _linearise(pose, kf_poses, disp, pixels, intr, targets, conf, params: MotionParams, with_jac: bool):
@@ -55,7 +56,8 @@ def align(pose: torch.Tensor, kf_poses: torch.Tensor, kf_disparity: torch.Tensor
     disp, tgt = kf_disparity.reshape(m, -1).to(dtype), targets.reshape(m, -1, 2).to(dtype)
     conf = confidence.reshape(m, -1).to(dtype)
     pose = start = pose.to(dtype)
-    for _ in range(params.iterations):
+    steps = 0
+    for steps in range(1, params.iterations + 1):
         rp, resid, weight = _linearise(pose, kf_poses, disp, pixels, intrinsics, tgt, conf, params, True)
         if float(weight.sum()) < params.min_weight:
             return MotionResult(start, float("nan"), float(weight.sum()), False)
@@ -64,10 +66,17 @@ def align(pose: torch.Tensor, kf_poses: torch.Tensor, kf_disparity: torch.Tensor
         hess = torch.einsum("mpri,mprj->ij", wj, jac)
         grad = torch.einsum("mpri,mpr->i", wj, resid)
         hess = hess + params.damping * torch.diag(hess.diagonal()) + 1e-12 * torch.eye(6, dtype=dtype, device=device)
-        pose = se3.retract(pose, torch.linalg.solve(hess, grad))
+        step = torch.linalg.solve(hess, grad)
+        pose = se3.retract(pose, step)
+        # the step moved the trusted pixels by a thousandth of a grid pixel on average: converged. Tracking's start
+        # (a constant-velocity prediction) is usually a few steps from the answer, and every frame of a live camera
+        # would pay for the iterations after that
+        moved = (weight * torch.einsum("mpri,i->mpr", jac, step).norm(dim=-1)).sum() / weight.sum()
+        if float(moved) < params.step_tol:
+            break
     _, resid, weight = _linearise(pose, kf_poses, disp, pixels, intrinsics, tgt, conf, params, False)
     total = float(weight.sum())
     rms = float(((weight * (resid**2).sum(-1)).sum() / max(total, 1e-12)).sqrt())
     if not (bool(torch.isfinite(pose).all()) and total >= params.min_weight):
-        return MotionResult(start, rms, total, False)
-    return MotionResult(pose, rms, total, True)
+        return MotionResult(start, rms, total, False, steps)
+    return MotionResult(pose, rms, total, True, steps)

@@ -10,7 +10,8 @@ from services.ba.core.params import BAParams, FlowParams
 class MotionParams:
     """Motion-only (pose-only) Gauss-Newton alignment of a frame to fixed keyframes."""
 
-    iterations: int = 8  # Gauss-Newton iterations
+    iterations: int = 8  # Gauss-Newton iterations at most
+    step_tol: float = 1e-3  # ... ended once a step moves the trusted pixels by less than this on average (grid px)
     huber: float = 1.0  # Huber threshold on the flow residual norm (grid px)
     damping: float = 1e-6  # relative Levenberg damping of the 6x6 normal matrix
     min_weight: float = 20.0  # below this total weight (pixel count) the alignment is refused
