@@ -113,6 +113,8 @@ def run_frontend(frames: list[SourceFrame], focal: float | None = None,
                                                  realtime=live, defer_ba=behind)))
         ba_seconds += time.perf_counter() - t0
         n_kf += 1
+        if not live:  # a lossless stream's mapping idles between keyframes (the backbone paces them)
+            keep(frontend.refine_globally())
         if tracker is not None and (ref := frontend.reference()) is not None:
             tracker.set_reference(ref)
         if verbose:

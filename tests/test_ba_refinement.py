@@ -125,3 +125,33 @@ def test_end_of_stream_ba_bounded_in_time_still_finishes(live):
     final = fe.finish()
     assert len(calls) == 1 and calls[0] is not None and calls[0]()  # the bound reached the solve, already past
     assert np.isfinite(final.poses.poses).all() and final.poses.frame_seqs.tolist() == expected
+
+
+def test_spare_time_runs_the_global_ba_once_enough_keyframes_joined_and_never_for_a_live_stream():
+    """Lossless streams: mapping idles between keyframes (the backbone paces them), so the BA over every held
+    keyframe runs then, once ``background_ba_every`` keyframes have joined since the last, and the end of stream
+    starts from its result. It revises every keyframe (poses and maps go out), keeps the trajectory on the
+    truth, and is not due again until more keyframes join. A live stream's mapping has no such time."""
+    from services.ba.frontend.params import GraphParams
+
+    world, msgs = synth_stream(n_frames=60, rendered=24, every=3, width=256)
+    params = FrontendParams(graph=GraphParams(window=4), background_ba_every=3, focal_after=1000,
+                            global_ba=BAParams(iterations=3))
+    fe, live = Frontend(params), Frontend(params)
+    revised = []
+    for msg in msgs[:-1]:
+        if isinstance(msg, Keyframe):
+            fe.add_keyframe(KeyframeInput(msg.seq, msg.t_ns, msg.image, msg.intrinsics, msg.codes))
+            live.add_keyframe(KeyframeInput(msg.seq, msg.t_ns, msg.image, msg.intrinsics, msg.codes, realtime=True))
+            update = fe.refine_globally()
+            if update.graph is not None:
+                revised.append(update)
+                assert fe.refine_globally().graph is None  # not due again until 3 more keyframes join
+            assert live.refine_globally().graph is None
+        else:
+            fe.add_frame(FrameInput(msg.seq, msg.t_ns, msg.image))
+    assert len(revised) >= 2
+    last = revised[-1].graph
+    assert last.updated_seqs.tolist() == last.kf_seqs.tolist() == fe.graph.seqs  # every keyframe revised
+    rmse, length = ate_of(world, last.kf_seqs, last.poses)
+    assert rmse < 0.01 * length

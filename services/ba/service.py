@@ -230,20 +230,24 @@ def handle_eos(state: BaState, msg: Eos, cfg: BaSettings) -> Outputs:
 
 
 def _outputs(state: BaState, msg: Message, update: Update, final: bool) -> Outputs:
+    return _outputs_at(state, msg.stream, msg.seq, msg.t_ns, update, final)
+
+
+def _outputs_at(state: BaState, stream: str, seq: int, t_ns: int, update: Update, final: bool) -> Outputs:
     out: Outputs = []
     fe = state.frontend
     width, height = fe.size
     if update.graph is not None:
         g = update.graph
-        out.append((keys.topic(msg.stream, keys.GRAPH), Graph(
-            msg.stream, msg.seq, msg.t_ns, kf_seqs=g.kf_seqs, poses=g.poses, intrinsics=g.intrinsics, width=width,
+        out.append((keys.topic(stream, keys.GRAPH), Graph(
+            stream, seq, t_ns, kf_seqs=g.kf_seqs, poses=g.poses, intrinsics=g.intrinsics, width=width,
             height=height, updated_seqs=g.updated_seqs, disparities=g.disparities, static_weights=g.static_weights,
             confidence=g.confidence, metric=g.metric, final=final)))
     if update.poses is not None:
-        out.append(_poses_out(msg.stream, msg.seq, msg.t_ns, update.poses, final))
+        out.append(_poses_out(stream, seq, t_ns, update.poses, final))
     if update.intrinsics_changed or (final and fe.intrinsics is not None):
-        out.append((keys.topic(msg.stream, keys.INTRINSICS), Intrinsics(
-            msg.stream, msg.seq, msg.t_ns, intrinsics=fe.intrinsics, width=width, height=height)))
+        out.append((keys.topic(stream, keys.INTRINSICS), Intrinsics(
+            stream, seq, t_ns, intrinsics=fe.intrinsics, width=width, height=height)))
     return out
 
 
@@ -381,7 +385,22 @@ def _refine_while_idle(state: BaState, inboxes: tuple[Inbox, ...], cfg: BaSettin
         if update.poses is None:
             break
         out.append(_poses_out(state.stream, int(update.poses.frame_seqs[-1]), time.time_ns(), update.poses, False))
+    if not out and not any(box.qsize() for box in inboxes):
+        out += _refine_globally(state)
     return out
+
+
+def _refine_globally(state: BaState) -> Outputs:
+    """Nothing else to do: the BA over every held keyframe, when one is due (``Frontend.refine_globally``); its
+    graph and poses go out as revisions."""
+    try:
+        update = state.frontend.refine_globally()
+    except (ValueError, RuntimeError) as exc:  # optional work: the window's state stands
+        log.warning("background global BA failed", extra={"stream": state.stream, "error": str(exc)})
+        return []
+    if update.graph is None:
+        return []
+    return _outputs_at(state, state.stream, int(update.graph.kf_seqs[-1]), time.time_ns(), update, final=False)
 
 
 def _seen_before(state: BaState, msg: Keyframe | FrameLite, resumed_at: int) -> bool:

@@ -77,6 +77,11 @@ class BaSettings(BASettings):
     """Real-time streams: keyframe edge flows at 1/this of the working size (mapping keeps up with a live camera)."""
     live_iterations: int = FrontendParams.live_iterations
     """Real-time streams: LM iterations of the window BA per keyframe."""
+    background_ba_every: int = FrontendParams.background_ba_every
+    """Lossless streams: mapping's spare time runs the global BA over every held keyframe once this many keyframes
+    have joined since the last (0: only at the end of stream)."""
+    background_ba_s: float = FrontendParams.background_ba_s
+    """... stopping after the iteration that passes this many seconds."""
     live_flow_preset: Literal["ultrafast", "fast", "medium"] = FrontendParams.live_flow_preset
     """Real-time streams: OpenCV DIS preset of keyframe edge flows."""
     live_window: int = FrontendParams.live_window
@@ -152,5 +157,6 @@ class BaSettings(BASettings):
             live_flow_downscale=self.live_flow_downscale, live_iterations=self.live_iterations,
             live_max_deferred=self.live_max_deferred, final_align_s=self.final_align_s,
             live_window=self.live_window, live_flow_preset=self.live_flow_preset,
-            live_calibration=self.live_calibration,
+            live_calibration=self.live_calibration, background_ba_every=self.background_ba_every,
+            background_ba_s=self.background_ba_s,
             global_ba_s=self.global_ba_s)

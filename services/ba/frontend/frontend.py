@@ -94,6 +94,7 @@ class Frontend:
         self._calibrated = False  # the multi-start focal calibration ran (see _calibrate_focal)
         self._live = False  # the newest keyframe came from a real-time stream
         self._deferred = 0  # keyframes in a row whose window BA was left to a later keyframe
+        self._since_global = 0  # keyframes joined since the last BA over every held keyframe (refine_globally)
         self._carried: dict[int, torch.Tensor] = {}  # deferred keyframe seq -> (h, w) 1 where its carried-over
         # disparity is measured (a point landed), 0 where filled in; emptied by the next window BA
 
@@ -113,7 +114,9 @@ class Frontend:
         # (ultrafast alone failed it on 128x96 live flows)
         g.flow_preset = self.params.live_flow_preset if kf.realtime and self.initialised else None
         try:
-            return self._integrate(k, kf.defer_ba)
+            update = self._integrate(k, kf.defer_ba)
+            self._since_global += 1
+            return update
         except Exception:
             if k < len(g) and g.seqs[k] == kf.seq:  # leave the graph as it was before this keyframe
                 g.remove(k)
@@ -243,6 +246,26 @@ class Frontend:
             self.frames.align(g, seq)
         self._align_unmeasured(time.monotonic() + self.params.final_align_s)
         return self._update(list(range(len(g))), every_frame=True)
+
+    def refine_globally(self) -> Update:
+        """Mapping's spare time on a lossless stream: once ``background_ba_every`` keyframes have joined since the
+        last one, the end of stream's BA over every keyframe held, bounded to ``background_ba_s``, so the map
+        outside the window is refined during the stream and the end of stream's own BA starts near its optimum
+        (it stops once an iteration gains less than ``global_ba.rel_tol``). Every keyframe's pose and map in the
+        update (empty when none is due, or the BA was refused). A live stream's mapping has no such time: a BA
+        over 100 keyframes takes seconds, and keyframes would queue behind it."""
+        g, p = self.graph, self.params
+        if (g is None or not self.initialised or self._live or p.background_ba_every <= 0
+                or self._since_global < p.background_ba_every or len(g) <= p.graph.window):
+            return Update()
+        self._since_global = 0
+        everything = list(range(len(g)))
+        pairs = sorted(set(g.pairs(everything, p.graph.global_radius)))
+        began = time.monotonic()
+        if g.run(everything, pairs, self._ba_params(everything, p.global_ba),
+                 lambda: time.monotonic() - began >= p.background_ba_s) is None:
+            return Update()
+        return self._update(everything)
 
     def _align_unmeasured(self, deadline: float) -> None:
         """Frames still held whose pose no flow of mapping's measured are aligned to their final keyframes, oldest

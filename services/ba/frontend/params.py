@@ -63,6 +63,9 @@ class FrontendParams:
     global_ba: BAParams = field(default_factory=lambda: BAParams(iterations=10, optimise_focal=True))  # end
     global_ba_s: float = 0.0  # the end-of-stream BA stops after the iteration that passes this many seconds (0:
     # runs its iterations): end-of-stream work bounded by time, whatever the window holds
+    background_ba_every: int = 10  # a lossless stream's mapping, when idle, runs the end-of-stream BA over every
+    # held keyframe once this many keyframes have joined since the last (0: never; Frontend.refine_globally)
+    background_ba_s: float = 3.0  # ... stopping after the iteration that passes this many seconds
     final_align_s: float = 8.0  # at end of stream, frames posed without mapping's own flow (tracked on a live
     # stream, or interpolated by time) are aligned again to their final keyframes, oldest first, for at most this
     # long: tracking's cheap flow leaves them ~2 cm off on the synthetic world where keyframes are at 3 mm
