@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from services.ba.core import se3, synthetic
-from services.ba.frontend import edges, init, motion
+from services.ba.frontend import edges, init, motion, steps
 from services.ba.frontend.frames import interpolate
 from services.ba.frontend.frontend import FrameInput, Frontend, KeyframeInput
 from services.ba.frontend.graph import grid_intrinsics, working_intrinsics
@@ -330,9 +330,9 @@ def test_a_keyframe_after_frames_merged_away_is_judged_by_speed_not_step_length(
     pose[2, 3] = 5.0 + gap
     g.append(12, 12 * second, np.zeros((64, 96), np.uint8), None, None, pose, torch.ones(8, 12, dtype=torch.float64))
     k = len(g) - 1
-    assert fe._plausible_step(pose, k)  # 7 m after 7 frames at 1 m per frame; 7x the last step
+    assert steps.plausible(g, pose, k, 4.0)  # 7 m after 7 frames at 1 m per frame; 7x the last step
     flown = pose.clone()
     flown[2, 3] = 5.0 + 5 * gap  # 5 m per frame over the gap
-    assert not fe._plausible_step(flown, k)
-    predicted = fe._bounded_prediction(k)
+    assert not steps.plausible(g, flown, k, 4.0)
+    predicted = steps.bounded_prediction(g, k)
     assert float(predicted[2, 3]) == pytest.approx(5.0 + gap, rel=1e-6)

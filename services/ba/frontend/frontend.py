@@ -24,11 +24,11 @@ import torch
 
 from services.ba.core import flow as core_flow
 from services.ba.core import se3
-from services.ba.frontend import edges, init, motion
+from services.ba.frontend import edges, init, motion, steps
 from services.ba.frontend.frames import FramePoses, FrameRecord
 from services.ba.frontend.graph import GRID, KeyframeGraph, NativeCodes, grid_intrinsics, working_intrinsics
 from services.ba.frontend.params import FrontendParams
-from services.ba.frontend.tracker import MAX_EXTRAPOLATION, Reference, propagate_disparity
+from services.ba.frontend.tracker import Reference, propagate_disparity
 
 logger = logging.getLogger(__name__)
 
@@ -338,43 +338,10 @@ class Frontend:
         res = motion.align(g.poses[k], g.poses[k - 1][None], g.disparity[k - 1][None], t.target[None].to(self.device),
                            t.confidence[None].to(self.device), g.intrinsics, self.params.motion)
         pose = res.pose if res.ok else g.poses[k]
-        g.poses[k] = pose if self._plausible_step(pose, k) else self._bounded_prediction(k)
-
-    def _recent_speed(self, k: int) -> float:
-        """Median speed (length per nanosecond) between consecutive keyframes among the six before ``k``."""
-        g = self.graph
-        first = max(0, k - 6)
-        centres = torch.stack([g.poses[i][:3, 3] for i in range(first, k)])
-        dt = torch.tensor(g.stamps[first:k], dtype=torch.float64, device=centres.device).diff().clamp_min(1.0)
-        return float(((centres[1:] - centres[:-1]).norm(dim=-1) / dt).median())
-
-    def _gap(self, k: int) -> float:
-        return float(max(1, self.graph.stamps[k] - self.graph.stamps[k - 1]))
-
-    def _plausible_step(self, pose: torch.Tensor, k: int) -> bool:
-        """Motion-only alignment of a keyframe whose flow barely constrains it (near objects lost by DIS, a
-        forward motion along the depth ambiguity) can slide far along its free direction; kept, that step would
-        be repeated by every later constant-velocity prediction. Its speed must stay within ``max_step_growth``
-        times the median of the previous steps' (speeds, not lengths: a live stream's keyframes merged as frames
-        leave gaps of several frames between mapped keyframes)."""
-        if k < 3:
-            return True
-        step = float((pose[:3, 3] - self.graph.poses[k - 1][:3, 3]).norm())
-        return step <= self.params.max_step_growth * self._recent_speed(k) * self._gap(k)
-
-    def _bounded_prediction(self, k: int) -> torch.Tensor:
-        """The previous keyframe's motion continued over this keyframe's time gap, its translation no longer than
-        the recent median speed allows."""
-        g = self.graph
-        span = float(max(1, g.stamps[k - 1] - g.stamps[k - 2]))
-        twist = se3.log(se3.inverse(g.poses[k - 2]) @ g.poses[k - 1])
-        rel = se3.exp(min(self._gap(k) / span, MAX_EXTRAPOLATION) * twist)
-        length, allowed = float(rel[:3, 3].norm()), self._recent_speed(k) * self._gap(k)
-        if length > allowed > 0:
-            rel = rel.clone()
-            rel[:3, 3] *= allowed / length
-        logger.info("keyframe pose implausible; bounded constant-velocity prediction kept", extra={"seq": g.seqs[k]})
-        return se3.orthonormalize(g.poses[k - 1] @ rel)
+        if not steps.plausible(g, pose, k, self.params.max_step_growth):
+            logger.info("keyframe pose implausible; bounded constant-velocity prediction kept", extra={"seq": g.seqs[k]})
+            pose = steps.bounded_prediction(g, k)
+        g.poses[k] = pose
 
     def _window(self) -> list[int]:
         n = len(self.graph)

@@ -1,0 +1,48 @@
+"""Whether a keyframe's aligned pose is a plausible step from the keyframes before it, and the prediction that
+replaces one that is not. Speeds over time gaps, not step lengths: keyframes come every frame while a car
+drives fast and every dozen while a hand-held camera creeps, and a live stream's keyframes merged into frames
+leave gaps of several frames between mapped ones."""
+from __future__ import annotations
+
+import torch
+
+from services.ba.core import se3
+from services.ba.frontend.graph import KeyframeGraph
+from services.ba.frontend.tracker import MAX_EXTRAPOLATION
+
+
+def recent_speed(graph: KeyframeGraph, k: int) -> float:
+    """Median speed (length per nanosecond) between consecutive keyframes among the six before ``k``."""
+    first = max(0, k - 6)
+    centres = torch.stack([graph.poses[i][:3, 3] for i in range(first, k)])
+    dt = torch.tensor(graph.stamps[first:k], dtype=torch.float64, device=centres.device).diff().clamp_min(1.0)
+    return float(((centres[1:] - centres[:-1]).norm(dim=-1) / dt).median())
+
+
+def gap(graph: KeyframeGraph, k: int) -> float:
+    """Nanoseconds between keyframe ``k`` and the one before."""
+    return float(max(1, graph.stamps[k] - graph.stamps[k - 1]))
+
+
+def plausible(graph: KeyframeGraph, pose: torch.Tensor, k: int, max_growth: float) -> bool:
+    """Motion-only alignment of a keyframe whose flow barely constrains it (near objects lost by DIS, a forward
+    motion along the depth ambiguity) can slide far along its free direction; kept, that step would be repeated by
+    every later constant-velocity prediction. ``pose`` (world_from_cam of keyframe ``k``) must keep its speed from
+    keyframe ``k - 1`` within ``max_growth`` times the median of the previous steps'."""
+    if k < 3:
+        return True
+    step = float((pose[:3, 3] - graph.poses[k - 1][:3, 3]).norm())
+    return step <= max_growth * recent_speed(graph, k) * gap(graph, k)
+
+
+def bounded_prediction(graph: KeyframeGraph, k: int) -> torch.Tensor:
+    """The motion from keyframe ``k - 2`` to ``k - 1`` continued over keyframe ``k``'s time gap, its translation no
+    longer than the recent median speed allows."""
+    span = float(max(1, graph.stamps[k - 1] - graph.stamps[k - 2]))
+    twist = se3.log(se3.inverse(graph.poses[k - 2]) @ graph.poses[k - 1])
+    rel = se3.exp(min(gap(graph, k) / span, MAX_EXTRAPOLATION) * twist)
+    length, allowed = float(rel[:3, 3].norm()), recent_speed(graph, k) * gap(graph, k)
+    if length > allowed > 0:
+        rel = rel.clone()
+        rel[:3, 3] *= allowed / length
+    return se3.orthonormalize(graph.poses[k - 1] @ rel)
