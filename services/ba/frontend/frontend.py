@@ -339,7 +339,8 @@ class Frontend:
                            t.confidence[None].to(self.device), g.intrinsics, self.params.motion)
         pose = res.pose if res.ok else g.poses[k]
         if not steps.plausible(g, pose, k, self.params.max_step_growth):
-            logger.info("keyframe pose implausible; bounded constant-velocity prediction kept", extra={"seq": g.seqs[k]})
+            logger.info("keyframe pose implausible; bounded constant-velocity prediction kept",
+                        extra={"seq": g.seqs[k]})
             pose = steps.bounded_prediction(g, k)
         g.poses[k] = pose
 
