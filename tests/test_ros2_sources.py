@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -37,6 +38,17 @@ def message_of(msgtype: str, rgb: np.ndarray, t_ns: int):
     return messages.compressed_message(rgb, t_ns, "camera", fmt="png")
 
 
+def _graph_tokens_until(router, part: str, within_s: float = 10.0) -> list[str]:
+    """The ROS graph's liveliness tokens, asked again until one contains ``part`` or ``within_s`` passed (the
+    node's token can arrive before its subscription's on a loaded machine)."""
+    deadline = time.monotonic() + within_s
+    while True:
+        tokens = [str(r.ok.key_expr) for r in router.liveliness().get("@ros2_lv/3/**", timeout=2) if r.ok]
+        if any(part in t for t in tokens) or time.monotonic() > deadline:
+            return tokens
+        time.sleep(0.1)
+
+
 @pytest.mark.parametrize("form", ["rmw_zenoh", "bridge"])
 @pytest.mark.parametrize("topic, msgtype", [("/camera/image_raw", messages.IMAGE),
                                             ("/camera/image_raw/compressed", messages.COMPRESSED)])
@@ -58,7 +70,7 @@ def test_a_live_ros_topic_is_a_source(monkeypatch, form, topic, msgtype):
             if i == 1:  # a malformed sample is one bad frame; the stream goes on
                 publisher.put(b"\x00\x01\x00\x00garbage", attachment=attachment)
         if form == "rmw_zenoh":  # the subscription is in the ROS graph
-            tokens = [str(r.ok.key_expr) for r in router.liveliness().get("@ros2_lv/3/**", timeout=2) if r.ok]
+            tokens = _graph_tokens_until(router, "/MS/%/%/kmvipe/" + topic.replace("/", "%") + "/")
             assert any("/MS/%/%/kmvipe/" + topic.replace("/", "%") + "/" in t for t in tokens), tokens
         got = list(source.frames())  # ends once the topic is quiet for idle_timeout_s
     finally:
