@@ -78,8 +78,8 @@ class BASettings(KmVipeSettings):
 
     def ba_params(self, global_ba: bool = False) -> BAParams:
         """BA parameters of the frontend (or, with ``global_ba``, of the background global BA)."""
-        extra = {"rel_tol": self.global_rel_tol} if global_ba else {}
-        return BAParams(iterations=self.global_iterations if global_ba else self.iterations, **extra,
+        return BAParams(iterations=self.global_iterations if global_ba else self.iterations,
+                        rel_tol=self.global_rel_tol if global_ba else BAParams.rel_tol,
                         lambda_embed=self.lambda_embed, embed_form=self.embed_form, alpha_disp=self.alpha_disp,
                         optimise_focal=self.optimise_focal, robust=self.robust_params(),
                         compute_dtype=self.compute_dtype)

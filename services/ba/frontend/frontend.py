@@ -236,11 +236,7 @@ class Frontend:
         if not self.initialised:
             static = self._force_initialise()
         if len(g) > 1 and not static:
-            everything = list(range(len(g)))
-            pairs = sorted(set(g.pairs(everything, self.params.graph.global_radius)))
-            began, bound = time.monotonic(), self.params.global_ba_s
-            g.run(everything, pairs, self._ba_params(everything, self.params.global_ba),
-                  (lambda: time.monotonic() - began >= bound) if bound > 0 else None)
+            self._global_ba(self.params.global_ba_s)
         # frames after the last keyframe too: at the end no later keyframe will come to bracket them
         for seq in [s for s, f in self.frames.frames.items() if f.anchor is None]:
             self.frames.align(g, seq)
@@ -259,13 +255,19 @@ class Frontend:
                 or self._since_global < p.background_ba_every or len(g) <= p.graph.window):
             return Update()
         self._since_global = 0
-        everything = list(range(len(g)))
-        pairs = sorted(set(g.pairs(everything, p.graph.global_radius)))
-        began = time.monotonic()
-        if g.run(everything, pairs, self._ba_params(everything, p.global_ba),
-                 lambda: time.monotonic() - began >= p.background_ba_s) is None:
+        if not self._global_ba(p.background_ba_s):
             return Update()
-        return self._update(everything)
+        return self._update(list(range(len(g))))
+
+    def _global_ba(self, bound_s: float) -> bool:
+        """The BA over every held keyframe with the global edge set, stopping after the iteration that passes
+        ``bound_s`` seconds (0: all its iterations); False when its result was refused."""
+        g = self.graph
+        everything = list(range(len(g)))
+        began = time.monotonic()
+        should_stop = (lambda: time.monotonic() - began >= bound_s) if bound_s > 0 else None
+        return g.run(everything, g.pairs(everything, self.params.graph.global_radius),
+                     self._ba_params(everything, self.params.global_ba), should_stop) is not None
 
     def _align_unmeasured(self, deadline: float) -> None:
         """Frames still held whose pose no flow of mapping's measured are aligned to their final keyframes, oldest
