@@ -34,7 +34,7 @@ from services.ba.core import se3
 from services.ba.frontend.frontend import FrameInput, Frontend, KeyframeInput
 from services.ba.frontend.tracker import Tracker
 from services.ba.settings import BaSettings
-from services.ba.tracking import half_size
+from services.ba.tracking_process import half_size
 from services.common.config import LogSettings
 from services.common.lifecycle import tune_malloc_for_tensors
 from services.common.logs import setup_logging

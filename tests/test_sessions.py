@@ -167,13 +167,20 @@ def test_a_restarted_publisher_opens_a_new_session_and_the_old_sessions_map_is_u
                      KMVIPE_QUERY_HOST="127.0.0.1", KMVIPE_QUERY_TEXT_ENCODER="oracle",
                      KMVIPE_QUERY_ORACLE_SYNTH_SEED="0", KMVIPE_FEATURES_PCA_FIT_KEYFRAMES="2")
     poses: dict[str, dict[int, np.ndarray]] = {}
+    mapped_seqs: dict[str, set[int]] = {}
     ended: set[str] = set()
     lock = threading.Lock()
 
     def on_pose(delivery) -> None:
         with lock:
             book = poses.setdefault(delivery.msg.session, {})
-            book.update({int(s): np.asarray(p) for s, p in zip(delivery.msg.frame_seqs, delivery.msg.poses)})
+            mapped = mapped_seqs.setdefault(delivery.msg.session, set())
+            for s, p in zip(delivery.msg.frame_seqs.tolist(), delivery.msg.poses):
+                if delivery.msg.tracked and s in mapped:
+                    continue  # as the mapstore keeps them: a tracked pose that comes late never replaces a mapped one
+                book[s] = np.asarray(p)
+                if not delivery.msg.tracked:
+                    mapped.add(s)
 
     def on_eos(delivery) -> None:
         if delivery.msg.stage == "mapstore":

@@ -56,7 +56,8 @@ def test_each_shard_serves_the_streams_it_owns_and_releases_finished_ones(tcp_en
             wait_until(lambda: "cam0" not in owner.served, 5, "cam0 released")
             tokens["cam0"] = source.announce("cam0")  # the same stream again: a new worker
             wait_until(lambda: "cam0" in owner.served, 5, "cam0 served again")
-            assert workers[hosts.index(owner)].started.count("cam0") == 2
+            # the host serves it once its thread is started; the worker records itself when that thread runs
+            wait_until(lambda: workers[hosts.index(owner)].started.count("cam0") == 2, 5, "cam0's second worker")
         finally:
             stop.set()
             for t in threads:

@@ -2,8 +2,9 @@
 ``intrinsics``, ``progress`` and ``eos`` out. One handler per message kind; ``run`` only receives, handles and
 publishes.
 
-Two threads, as PTAM and DSO split them: tracking (services/ba/tracking.py) poses every frame on arrival
-against the newest mapped keyframe and publishes it at once (``tracked=True``); mapping (this loop) runs the
+Tracking and mapping apart, as PTAM and DSO split them: tracking (services/ba/tracking.py, its tracker in a
+child process) poses every frame on arrival against the newest mapped keyframe and publishes it at once
+(``tracked=True``); mapping (this loop) runs the
 window BA per keyframe, revises poses, and hands tracking a new reference after each BA. Keyframes arrive
 without codes; their ``codes`` follow when features' backbone is done (the fixed kernel runs until then, ARK
 after). In real time, when keyframes queue up behind mapping the oldest is merged as a frame. Progress reports
@@ -293,7 +294,7 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
 
     for name, kind in ((keys.KEYFRAME, Keyframe), (keys.FRAME_LITE, FrameLite)):
         bus.subscribe(topic(name), to_both, [kind])
-    tracking = TrackingLoop(cfg.tracker(), bus, track_box, cfg.stream,
+    tracking = TrackingLoop(cfg.tracking_core(), bus, track_box, cfg.stream,
                             state.anchors, cfg.tracking_nice)
     restarted_mapstore = _watch_mapstores(bus, topic(keys.PROGRESS))
     release = MemoryRelease(cfg.release_memory_period_s)

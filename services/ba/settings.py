@@ -7,7 +7,8 @@ this class adds the service and frontend ones and turns everything into :class:`
 from __future__ import annotations
 
 import dataclasses
-from typing import Literal
+import functools
+from typing import Callable, Literal
 
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
@@ -102,6 +103,9 @@ class BaSettings(BASettings):
     tracking_promote_after: int = 1
     """Tracking keeps mapping's reference while it is at most this many keyframes behind the newest keyframe;
     further behind, tracking promotes its own keyframes (depth carried over) and corrects them by mapping's."""
+    tracking_process: bool = True
+    """Frame-rate tracking in a child process of its own (its own interpreter: it never waits for mapping's BA,
+    and mapping gets the second core); False: a thread of the ba process, sharing mapping's interpreter."""
     tracking_nice: int = 0
     """Niceness of the tracking thread (Linux; per thread). Tracking comes first on a shared CPU."""
     mapping_nice: int = 5
@@ -135,8 +139,20 @@ class BaSettings(BASettings):
 
     def tracker(self) -> "Tracker":
         """The frame-rate tracker with these settings."""
+        return self._make_tracker()()
+
+    def tracking_core(self) -> "LocalTracker | TrackerProcess":
+        """The tracker as the tracking thread drives it: in a child process (``tracking_process``) or in-thread."""
+        from services.ba.tracking_process import LocalTracker, TrackerProcess
+        if self.tracking_process:
+            return TrackerProcess(self._make_tracker(), self.tracking_nice, name=f"kmvipe-tracking-{self.stream}")
+        return LocalTracker(self._make_tracker())
+
+    def _make_tracker(self) -> "Callable[[], Tracker]":
+        """A picklable factory of the tracker (a child process builds its own)."""
         from services.ba.frontend.tracker import Tracker
-        return Tracker(self.frontend_params().motion, self.tracking_flow_params(), self.tracking_promote_after)
+        return functools.partial(Tracker, self.frontend_params().motion, self.tracking_flow_params(),
+                                 self.tracking_promote_after)
 
     def tracking_flow_params(self) -> FlowParams:
         """Flow parameters of the tracker: cheaper than the window's (it runs on every frame)."""

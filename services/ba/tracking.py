@@ -1,8 +1,10 @@
 """The tracking thread of the ba service: every frame (and keyframe) posed on arrival, published at once.
 
 It has its own inbox, so a frame never waits behind a keyframe's window BA; the mapping loop hands it a new
-reference keyframe after each BA (:meth:`TrackingLoop.set_reference`). Poses it publishes carry
-``tracked=True``: consumers keep them until mapping publishes a revision of the same frame.
+reference keyframe after each BA (:meth:`TrackingLoop.set_reference`). The tracker itself runs in a process of
+its own (:class:`~services.ba.tracking_process.TrackerProcess`, ``BaSettings.tracking_process``): this thread only
+moves frames to it and poses back. Poses it publishes carry ``tracked=True``: consumers keep them until mapping
+publishes a revision of the same frame.
 """
 from __future__ import annotations
 
@@ -11,7 +13,6 @@ import threading
 import time
 from collections import deque
 
-import cv2
 import numpy as np
 import torch
 
@@ -19,23 +20,23 @@ from services.common import keys
 from services.common.bus import Bus, Inbox
 from services.common.lifecycle import nice_this_thread
 from services.common.schema import Eos, FrameLite, Keyframe, Poses
-from services.ba.core import se3
-from services.ba.core.flow import to_grey
-from services.ba.frontend.tracker import Reference, Tracker
+from services.ba.frontend.tracker import Reference
+from services.ba.tracking_process import LocalTracker, TrackerProcess
 
 log = logging.getLogger(__name__)
 POLL_S = 0.05
 
 
 class TrackingLoop:
-    """Runs :class:`Tracker` on a thread over ``inbox`` (frame_lite and keyframe messages of one stream)."""
+    """Runs a tracker on a thread over ``inbox`` (frame_lite and keyframe messages of one stream)."""
 
-    def __init__(self, tracker: Tracker, bus: Bus, inbox: Inbox, stream: str,
+    def __init__(self, tracker: LocalTracker | TrackerProcess, bus: Bus, inbox: Inbox, stream: str,
                  anchors: dict[int, tuple[int, torch.Tensor, torch.Tensor]], niceness: int = 0):
         self.tracker, self.bus, self.inbox, self.stream, self.niceness = tracker, bus, inbox, stream, niceness
         self._lock = threading.Lock()
         self._pending_ref: Reference | None = None
         self._reset = False
+        self._has_reference = False
         self.tracked = 0  # frames posed by tracking in this stream
         self.last_seq = -1  # highest seq handled (for progress reports)
         # seq -> (reference keyframe seq, (4, 4) reference_from_cam, (4, 4) world_from_cam): mapping anchors the
@@ -48,11 +49,18 @@ class TrackingLoop:
         self._thread = threading.Thread(target=self._run, name=f"stream-{stream}/tracking", daemon=True)
 
     def start(self) -> None:
+        try:  # a child process takes seconds to import torch: it does so while the stream starts
+            self.tracker.start()
+        except RuntimeError as exc:  # tracking on a thread of ba is slower, not wrong
+            log.error("tracking process did not start; tracking on a thread of ba instead",
+                      extra={"stream": self.stream, "error": str(exc)})
+            self.tracker = LocalTracker(self.tracker.make_tracker)
         self._thread.start()
 
     def stop(self) -> None:
         self._stop.set()
         self._thread.join(timeout=5)
+        self.tracker.close()
 
     def set_reference(self, ref: Reference) -> None:
         """Called by the mapping loop: track against ``ref`` from the next frame on."""
@@ -68,59 +76,54 @@ class TrackingLoop:
         nice_this_thread(self.niceness)
         while not self._stop.is_set():
             delivery = self.inbox.get(POLL_S)
-            with self._lock:
-                if self._reset:
-                    self.tracker.reset()
-                    self.tracked, self._reset = 0, False
-                    self.anchors.clear()
-                ref, self._pending_ref = self._pending_ref, None
-            if ref is not None:
-                self.tracker.set_reference(ref)
-            while self._skipped:  # frames tracking had no time for still get a pose now, by prediction
-                self._predicted(self._skipped.popleft())
-            if delivery is None or isinstance(delivery.msg, Eos):
-                continue
             try:
+                self._take_news()
+                while self._skipped:  # frames tracking had no time for still get a pose now, by prediction
+                    self._predicted(self._skipped.popleft())
+                if delivery is None or isinstance(delivery.msg, Eos):
+                    continue
                 self._track(delivery.msg)
-            except (ValueError, RuntimeError) as exc:  # one bad frame never stops tracking
-                log.warning("frame not tracked", extra={"stream": self.stream, "seq": delivery.msg.seq,
-                                                        "error": str(exc)})
+            except (ValueError, RuntimeError) as exc:  # one bad frame, or a lost tracking process, never stops it
+                seq = None if delivery is None else delivery.msg.seq
+                log.warning("frame not tracked", extra={"stream": self.stream, "seq": seq, "error": str(exc)})
+
+    def _take_news(self) -> None:
+        """A reset or a new reference from mapping, if one came."""
+        with self._lock:
+            reset, self._reset = self._reset, False
+            ref, self._pending_ref = self._pending_ref, None
+        if reset:
+            self.tracker.reset()
+            self.tracked, self._has_reference = 0, False
+            self.anchors.clear()
+        if ref is not None:
+            self.tracker.set_reference(ref)
+            self._has_reference = True
 
     def _predicted(self, msg: FrameLite | Keyframe) -> None:
-        if self.tracker.reference is None:
+        if not self._has_reference:
             return
-        self._publish(msg, self.tracker.predict(msg.t_ns))
+        pose = self.tracker.predict(msg.t_ns)
+        if pose is not None:
+            self._publish(msg, pose)
 
-    def _publish(self, msg: FrameLite | Keyframe, pose: torch.Tensor, provisional: bool = False) -> None:
+    def _publish(self, msg: FrameLite | Keyframe, pose: np.ndarray, provisional: bool = False) -> None:
         self.bus.publish(keys.topic(self.stream, keys.POSE), Poses(
             self.stream, msg.seq, time.time_ns(), frame_seqs=np.array([msg.seq], np.int64),
-            stamps_ns=np.array([msg.t_ns], np.int64), poses=pose.detach().cpu().numpy().astype(np.float64)[None],
+            stamps_ns=np.array([msg.t_ns], np.int64), poses=np.asarray(pose, np.float64)[None],
             tracked=True, provisional=provisional))
 
     def _track(self, msg: FrameLite | Keyframe) -> None:
         self.last_seq = max(self.last_seq, msg.seq)
-        image, intrinsics = msg.image, msg.intrinsics
-        if isinstance(msg, Keyframe):  # before the map, provisional poses run at the size frames arrive in
-            image, intrinsics = half_size(to_grey(image), intrinsics)
-        out = self.tracker.track(msg.seq, msg.t_ns, image, intrinsics)
+        began = time.monotonic()
+        out = self.tracker.step(isinstance(msg, Keyframe), msg.seq, msg.t_ns, msg.image, msg.intrinsics)
+        log.debug("frame tracked", extra={"stream": self.stream, "seq": msg.seq, "queued": self.inbox.qsize(),
+                                          "seconds": round(time.monotonic() - began, 3)})
         if out is None:
             return
         self.tracked += 1
-        if isinstance(msg, Keyframe):
-            self.tracker.keyframe_seen(msg.seq)
         if out.ok:
-            self.anchors[msg.seq] = (out.ref_seq, se3.inverse(self.tracker.reference.pose) @ out.pose, out.pose)
-            if isinstance(msg, Keyframe):  # tracking moves on to it now, whether or not mapping keeps up
-                self.tracker.promote(msg.seq, msg.t_ns, to_grey(msg.image), out.pose)
+            self.anchors[msg.seq] = (out.ref_seq, torch.from_numpy(out.ref_from_cam), torch.from_numpy(out.pose))
         self._publish(msg, out.pose, provisional=out.ref_seq < 0)
         if not out.ok and out.ref_seq >= 0:
             log.info("frame kept its predicted pose (weak flow)", extra={"stream": self.stream, "seq": msg.seq})
-
-
-def half_size(grey: np.ndarray, intrinsics: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """A working-resolution grey image and its (4,) intrinsics at half size (the resize rule of
-    docs/CONVENTIONS.md)."""
-    h, w = grey.shape[:2]
-    fx, fy, cx, cy = (float(v) for v in intrinsics)
-    small = cv2.resize(grey, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
-    return small, np.array([fx / 2, fy / 2, (cx + 0.5) / 2 - 0.5, (cy + 0.5) / 2 - 0.5])

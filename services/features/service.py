@@ -319,6 +319,9 @@ def run(cfg: FeaturesSettings, bus: Bus, stop: threading.Event, state: FeaturesS
                     outputs += HANDLERS[type(delivery.msg)](state, delivery.msg, cfg)
                 except (ValueError, RuntimeError):  # one bad frame must not end the stream
                     log.exception("message failed", extra={"stream": cfg.stream, "seq": delivery.msg.seq})
+                log.debug("message handled", extra={"stream": cfg.stream, "seq": delivery.msg.seq,
+                                                    "kind": delivery.msg.KIND, "queued": inbox.qsize(),
+                                                    "seconds": round(time.monotonic() - now, 3)})
                 next_credit = 0.0  # grant the next frame at once
             for replay in state.replays:
                 for key, out in replay.due():  # kept already: published again, not recorded again

@@ -154,6 +154,10 @@ class MapstoreSettings(KmVipeSettings):
     """SQLite map database; ``{stream}`` is replaced by the stream name."""
     synchronous: Literal["NORMAL", "FULL"] = "FULL"
     """FULL: an acknowledged keyframe also survives power loss; NORMAL: survives a killed process."""
+    fusion_nice: int = 10
+    """Niceness of the thread that commits and fuses a stream's map (Linux; per thread): behind ba's tracking (0)
+    and mapping (5), ahead of the semantics backbone (19). Re-fusing after each graph update took about half a
+    core on a KITTI 07 live run, and at niceness 0 it took that from tracking (docs/BENCHMARKS.md)."""
     refresh_batch: int = 32
     """Messages already queued are committed one by one (each acknowledged as it commits) but re-fused together,
     at most this many at a time: ba revises 25 keyframes per update and features may send several PCA bases in a

@@ -26,7 +26,7 @@ import numpy as np
 from services.common import keys
 from services.common.bus import Bus
 from services.common.errors import DecodeError, ServiceTimeout
-from services.common.lifecycle import MemoryRelease
+from services.common.lifecycle import MemoryRelease, nice_this_thread
 from services.common.pca_fetch import BasisFetch
 from services.common.restarts import consumer_name
 from services.common.streams import session_of
@@ -217,6 +217,7 @@ def run(cfg: MapstoreSettings, bus: Bus, stop: threading.Event, state: MapState 
     _fetch_current_basis(state, bus, cfg)
     for version in _held_versions(state):
         fetch.want(version)
+    nice_this_thread(cfg.fusion_nice)  # the stream's own thread: queries and the bus keep their priority
     log.info("mapstore serving", extra={"stream": cfg.stream})
     last_report = 0.0
     release = MemoryRelease(cfg.release_memory_period_s)

@@ -32,6 +32,7 @@ class FrameRecord:
     anchor_from_cam: torch.Tensor | None = None  # (4, 4) float64
     targets: dict[int, Targets] = field(default_factory=dict)  # keyframe seq -> targets into this frame
     interpolate_only: bool = False  # posed between its keyframes by time alone, no flow (live, mapping behind)
+    focal: float = 0.0  # the map's grid focal when it was aligned (0: not aligned)
 
 
 def interpolate(pose_a: torch.Tensor, pose_b: torch.Tensor, frac: float) -> torch.Tensor:
@@ -106,6 +107,7 @@ class FramePoses:
     def _anchor(graph: KeyframeGraph, frame: FrameRecord, anchor: int, pose: torch.Tensor) -> torch.Tensor:
         frame.anchor = graph.seqs[anchor]
         frame.anchor_from_cam = se3.inverse(graph.poses[anchor]) @ pose
+        frame.focal = float(graph.intrinsics[0])
         return pose
 
     def pose(self, graph: KeyframeGraph, seq: int) -> torch.Tensor | None:
@@ -124,6 +126,12 @@ class FramePoses:
         """Align frame ``seq`` to its bracketing keyframes with mapping's flow, whatever posed it before."""
         self.frames[seq].interpolate_only = False
         return self.align(graph, seq)
+
+    def stale_focal(self, focal: float, tolerance: float) -> list[int]:
+        """Frames aligned with mapping's flow under a focal more than ``tolerance`` (relative) off ``focal``,
+        oldest first: their relative pose was solved on another camera model."""
+        return sorted(s for s, f in self.frames.items()
+                      if f.targets and f.focal > 0 and abs(f.focal / focal - 1.0) > tolerance)
 
     def anchored_to(self, anchors: set[int]) -> list[int]:
         return [s for s, f in self.frames.items() if f.anchor in anchors]

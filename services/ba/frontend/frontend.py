@@ -240,7 +240,9 @@ class Frontend:
         # frames after the last keyframe too: at the end no later keyframe will come to bracket them
         for seq in [s for s, f in self.frames.frames.items() if f.anchor is None]:
             self.frames.align(g, seq)
-        self._align_unmeasured(time.monotonic() + self.params.final_align_s)
+        deadline = time.monotonic() + self.params.final_align_s
+        self._align_unmeasured(deadline)
+        self._realign_measured(deadline)
         return self._update(list(range(len(g))), every_frame=True)
 
     def refine_globally(self) -> Update:
@@ -279,6 +281,15 @@ class Frontend:
                             extra={"aligned": done, "left": len(todo) - done})
                 break
             self.frames.measure(self.graph, seq)
+
+    def _realign_measured(self, deadline: float) -> None:
+        """Frames aligned with mapping's flow while the focal was still settling (more than
+        ``realign_focal_change`` off the final one) are aligned again with the same flow, oldest first, until
+        ``deadline``. A 40 deg lens whose calibration started 18 % short: 2.5 -> 1.2 % of path (docs/BENCHMARKS.md)."""
+        for seq in self.frames.stale_focal(float(self.graph.intrinsics[0]), self.params.realign_focal_change):
+            if time.monotonic() >= deadline:
+                break
+            self.frames.align(self.graph, seq)
 
     def refine_frame(self) -> Update:
         """Mapping's spare time on a live stream: the oldest frame whose pose no flow of mapping's measured yet

@@ -61,17 +61,17 @@ def align(pose: torch.Tensor, kf_poses: torch.Tensor, kf_disparity: torch.Tensor
         rp, resid, weight = _linearise(pose, kf_poses, disp, pixels, intrinsics, tgt, conf, params, True)
         if float(weight.sum()) < params.min_weight:
             return MotionResult(start, float("nan"), float(weight.sum()), False)
-        jac = rp.j_pose_j  # (M, P, 2, 6) d coords / d xi of the camera
-        wj = weight[..., None, None] * jac
-        hess = torch.einsum("mpri,mprj->ij", wj, jac)
-        grad = torch.einsum("mpri,mpr->i", wj, resid)
+        jac = rp.j_pose_j.reshape(-1, 6)  # (M * P * 2, 6) d coords / d xi of the camera
+        wj = weight.repeat_interleave(2, dim=-1).reshape(-1, 1) * jac  # each pixel's weight on its x and y rows
+        hess = wj.T @ jac  # a matrix product, not an einsum: tracking runs this on every frame
+        grad = wj.T @ resid.reshape(-1)
         hess = hess + params.damping * torch.diag(hess.diagonal()) + 1e-12 * torch.eye(6, dtype=dtype, device=device)
         step = torch.linalg.solve(hess, grad)
         pose = se3.retract(pose, step)
         # the step moved the trusted pixels by a thousandth of a grid pixel on average: converged. Tracking's start
         # (a constant-velocity prediction) is usually a few steps from the answer, and every frame of a live camera
         # would pay for the iterations after that
-        moved = (weight * torch.einsum("mpri,i->mpr", jac, step).norm(dim=-1)).sum() / weight.sum()
+        moved = (weight * (jac @ step).reshape(weight.shape + (2,)).norm(dim=-1)).sum() / weight.sum()
         if float(moved) < params.step_tol:
             break
     _, resid, weight = _linearise(pose, kf_poses, disp, pixels, intrinsics, tgt, conf, params, False)

@@ -66,6 +66,8 @@ class FrontendParams:
     background_ba_every: int = 10  # a lossless stream's mapping, when idle, runs the end-of-stream BA over every
     # held keyframe once this many keyframes have joined since the last (0: never; Frontend.refine_globally)
     background_ba_s: float = 3.0  # ... stopping after the iteration that passes this many seconds
+    realign_focal_change: float = 0.05  # end of stream: frames aligned under a focal this far (relative) from the
+    # final one are aligned again with their flow (a frame's relative pose is solved on one camera model)
     final_align_s: float = 8.0  # at end of stream, frames posed without mapping's own flow (tracked on a live
     # stream, or interpolated by time) are aligned again to their final keyframes, oldest first, for at most this
     # long: tracking's cheap flow leaves them ~2 cm off on the synthetic world where keyframes are at 3 mm

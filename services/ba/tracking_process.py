@@ -1,0 +1,225 @@
+"""Frame-rate tracking in a process of its own, so that it never waits for mapping's interpreter.
+
+Tracking and mapping in one process share one Python interpreter: a frame's motion-only alignment takes the
+interpreter hundreds of times, and each time waits behind mapping's BA. On a 2-core CPU that capped ba at one
+core and put a live frame's pose hundreds of milliseconds behind its capture. Here the :class:`Tracker` lives in
+a child process (``spawn``: the parent holds Zenoh's threads, which a fork would copy half-alive); ba's tracking
+thread sends it each frame and publishes the pose it gets back. Only numpy arrays cross the pipe (torch would
+pass tensors as shared-memory handles, one file descriptor each).
+
+A child that dies (killed, out of memory) is started again with the last reference mapping gave it: the frame
+in hand is tracked by the new child, nothing waits forever (``timeout_s``), and the restarts are counted.
+"""
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import os
+from typing import Callable, NamedTuple
+
+import cv2
+import numpy as np
+import torch
+
+from services.ba.core import se3
+from services.ba.core.flow import to_grey
+from services.ba.frontend.tracker import Reference, Tracker
+
+log = logging.getLogger(__name__)
+
+
+class Step(NamedTuple):
+    """One frame's tracking result, as plain arrays."""
+
+    pose: np.ndarray  # (4, 4) float64 world_from_cam
+    ok: bool  # aligned (False: the constant-velocity prediction, or a provisional rotation before the map)
+    ref_seq: int  # the keyframe it was aligned to (-1: before the map, provisional)
+    ref_from_cam: np.ndarray | None  # (4, 4) float64 relative to that keyframe, when ``ok``
+
+
+def step(tracker: Tracker, is_keyframe: bool, seq: int, t_ns: int, image: np.ndarray,
+         intrinsics: np.ndarray) -> Step | None:
+    """Track one frame (a keyframe moves tracking on to it); None before the map when nothing can be said."""
+    grey = to_grey(image) if is_keyframe else image
+    if is_keyframe:  # before the map, provisional poses run at the size frames arrive in
+        image, intrinsics = half_size(grey, intrinsics)
+    out = tracker.track(seq, t_ns, image, intrinsics)
+    if out is None:
+        return None
+    if is_keyframe:
+        tracker.keyframe_seen(seq)
+    ref_from_cam = None
+    if out.ok:
+        ref_from_cam = (se3.inverse(tracker.reference.pose) @ out.pose).cpu().numpy()
+        if is_keyframe:  # tracking moves on to it now, whether or not mapping keeps up
+            tracker.promote(seq, t_ns, grey, out.pose)  # its reference image at working resolution
+    return Step(out.pose.detach().cpu().numpy().astype(np.float64), out.ok, out.ref_seq, ref_from_cam)
+
+
+def half_size(grey: np.ndarray, intrinsics: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A working-resolution grey image and its (4,) intrinsics at half size (the resize rule of
+    docs/CONVENTIONS.md)."""
+    h, w = grey.shape[:2]
+    fx, fy, cx, cy = (float(v) for v in intrinsics)
+    small = cv2.resize(grey, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
+    return small, np.array([fx / 2, fy / 2, (cx + 0.5) / 2 - 0.5, (cy + 0.5) / 2 - 0.5])
+
+
+def predict(tracker: Tracker, t_ns: int) -> np.ndarray | None:
+    """The constant-velocity pose at ``t_ns``; None before the map."""
+    if tracker.reference is None:
+        return None
+    return tracker.predict(t_ns).detach().cpu().numpy().astype(np.float64)
+
+
+def pack_reference(ref: Reference) -> dict:
+    """``ref`` with numpy arrays in place of tensors (what crosses the pipe)."""
+    as_np = lambda t: None if t is None else t.detach().cpu().numpy()  # noqa: E731
+    out = ref._asdict()
+    out.update(pose=as_np(ref.pose), disparity=as_np(ref.disparity), intrinsics=as_np(ref.intrinsics),
+               known=as_np(ref.known),
+               previous=None if ref.previous is None else (ref.previous[0], as_np(ref.previous[1])))
+    return out
+
+
+def unpack_reference(packed: dict, device: str = "cpu") -> Reference:
+    as_t = lambda a: None if a is None else torch.from_numpy(np.asarray(a)).to(device)  # noqa: E731
+    fields = dict(packed)
+    fields.update(pose=as_t(fields["pose"]), disparity=as_t(fields["disparity"]),
+                  intrinsics=as_t(fields["intrinsics"]), known=as_t(fields["known"]),
+                  previous=None if fields["previous"] is None else (fields["previous"][0],
+                                                                    as_t(fields["previous"][1])))
+    return Reference(**fields)
+
+
+class LocalTracker:
+    """The tracker on the calling thread (tests, and a GPU where one process should hold the device)."""
+
+    def __init__(self, make_tracker: Callable[[], Tracker]):
+        self.tracker = make_tracker()
+        self.restarts = 0
+
+    def start(self) -> None:
+        pass
+
+    def set_reference(self, ref: Reference) -> None:
+        self.tracker.set_reference(ref)
+
+    def reset(self) -> None:
+        self.tracker.reset()
+
+    def step(self, is_keyframe: bool, seq: int, t_ns: int, image: np.ndarray, intrinsics: np.ndarray) -> Step | None:
+        return step(self.tracker, is_keyframe, seq, t_ns, image, intrinsics)
+
+    def predict(self, t_ns: int) -> np.ndarray | None:
+        return predict(self.tracker, t_ns)
+
+    def close(self) -> None:
+        pass
+
+
+def _serve(conn, make_tracker: Callable[[], Tracker], niceness: int, threads: int) -> None:
+    """The child: answer (call, args) requests until the pipe closes."""
+    torch.set_num_threads(threads)
+    try:  # absolute, not relative to the thread that started it
+        os.setpriority(os.PRIO_PROCESS, 0, niceness)
+    except (AttributeError, OSError):  # not Linux, or a higher priority than allowed: the inherited one stands
+        pass
+    tracker = make_tracker()
+    conn.send((True, "ready"))
+    calls = {"step": lambda *a: step(tracker, *a), "predict": lambda t: predict(tracker, t),
+             "reference": lambda packed: tracker.set_reference(unpack_reference(packed)),
+             "reset": tracker.reset}
+    while True:
+        try:
+            name, args = conn.recv()
+        except (EOFError, OSError):
+            return
+        try:
+            conn.send((True, calls[name](*args)))
+        except Exception as exc:  # noqa: BLE001 — the parent decides; the child keeps serving
+            conn.send((False, f"{type(exc).__name__}: {exc}"))
+
+
+class TrackerProcess:
+    """The same calls as :class:`LocalTracker`, answered by a child process."""
+
+    def __init__(self, make_tracker: Callable[[], Tracker], niceness: int = 0, threads: int = 1,
+                 timeout_s: float = 30.0, name: str = "kmvipe-tracking"):
+        self.make_tracker, self.niceness, self.threads = make_tracker, niceness, threads
+        self.timeout_s, self.name = timeout_s, name
+        self.restarts = 0  # children started again after one died or hung
+        self._reference: dict | None = None  # the last reference: a new child starts from it
+        self._proc = self._conn = None
+
+    def start(self) -> None:
+        ctx = mp.get_context("spawn")
+        self._conn, child = ctx.Pipe()
+        self._proc = ctx.Process(target=_serve, args=(child, self.make_tracker, self.niceness, self.threads),
+                                 name=self.name, daemon=True)
+        self._proc.start()
+        child.close()
+        # ready before ba says it is: frames that came while the child imported torch would queue up and drop
+        try:
+            started = self._conn.poll(self.timeout_s) and self._conn.recv() == (True, "ready")
+        except (EOFError, OSError):  # it died on the way up
+            started = False
+        if not started:
+            raise RuntimeError(f"the tracking process did not start in {self.timeout_s} s "
+                               f"(exit code {self._proc.exitcode})")
+
+    def set_reference(self, ref: Reference) -> None:
+        self._reference = pack_reference(ref)
+        self._call("reference", self._reference)
+
+    def reset(self) -> None:
+        self._reference = None
+        self._call("reset")
+
+    def step(self, is_keyframe: bool, seq: int, t_ns: int, image: np.ndarray, intrinsics: np.ndarray) -> Step | None:
+        return self._call("step", is_keyframe, seq, t_ns, np.asarray(image), np.asarray(intrinsics, np.float64))
+
+    def predict(self, t_ns: int) -> np.ndarray | None:
+        return self._call("predict", t_ns)
+
+    def close(self) -> None:
+        if self._proc is None:
+            return
+        self._conn.close()
+        self._proc.join(timeout=2)
+        if self._proc.is_alive():
+            self._proc.kill()
+            self._proc.join(timeout=2)
+        self._proc = self._conn = None
+
+    def _call(self, name: str, *args):
+        if self._proc is None:
+            self.start()
+        for attempt in (0, 1):
+            try:
+                self._conn.send((name, args))
+                if not self._conn.poll(self.timeout_s):
+                    raise TimeoutError(f"no answer in {self.timeout_s} s")
+                ok, value = self._conn.recv()
+            except (EOFError, OSError, TimeoutError) as exc:
+                if attempt:
+                    raise RuntimeError(f"tracking process failed twice: {exc}") from exc
+                self._restart(exc)
+                continue
+            if not ok:
+                raise RuntimeError(value)
+            return value
+
+    def _restart(self, why: Exception) -> None:
+        self.restarts += 1
+        log.error("tracking process lost; starting it again", extra={"error": str(why), "restarts": self.restarts,
+                                                                     "exitcode": self._proc.exitcode})
+        self._proc.kill()
+        self._proc.join(timeout=2)
+        self._proc = None
+        self.start()
+        if self._reference is not None:  # as mapping left it; the call in hand follows
+            self._conn.send(("reference", (self._reference,)))
+            if not self._conn.poll(self.timeout_s):
+                raise RuntimeError("the new tracking process took no reference")
+            self._conn.recv()

@@ -1,0 +1,103 @@
+"""Tracking in a child process (services/ba/tracking_process.py): the same poses as the tracker on the calling
+thread, against the synthetic world's exact trajectory; a child that is killed is started again from the last
+reference and the frame in hand still gets its pose."""
+from __future__ import annotations
+
+import os
+import signal
+
+import numpy as np
+import pytest
+import torch
+
+from services.ba.settings import BaSettings
+from services.ba.tracking_process import LocalTracker, TrackerProcess, pack_reference, unpack_reference
+from tests.test_ba_tracker import _errors, _grey, _reference
+
+synth = pytest.importorskip("services.synth")
+
+
+@pytest.fixture(scope="module")
+def world():
+    return synth.SynthWorld(synth.SynthConfig(n_frames=60, width=512, height=384))
+
+
+@pytest.fixture
+def process():
+    proc = BaSettings(tracking_process=True).tracking_core()
+    assert isinstance(proc, TrackerProcess)
+    proc.start()
+    yield proc
+    proc.close()
+
+
+def _track(tracker, world, frames):
+    out = []
+    for i in frames:
+        f = world.render(i)
+        grey = _grey(f.rgb, half=True)
+        out.append(tracker.step(False, i, f.t_ns, grey, np.asarray(f.intrinsics) / 2))
+    return out
+
+
+def test_a_reference_crosses_the_pipe_unchanged(world):
+    ref = _reference(world, 0)._replace(previous=(5, torch.eye(4, dtype=torch.float64)))
+    back = unpack_reference(pack_reference(ref))
+    for name in ("pose", "disparity", "intrinsics"):
+        assert torch.equal(getattr(back, name), getattr(ref, name))
+    assert back.seq == ref.seq and np.array_equal(back.image, ref.image) and torch.equal(back.previous[1],
+                                                                                          ref.previous[1])
+
+
+def test_the_child_tracks_as_the_thread_does_to_the_exact_trajectory(world, process):
+    local = LocalTracker(BaSettings(tracking_process=False)._make_tracker())
+    for tracker in (local, process):
+        tracker.set_reference(_reference(world, 0))
+    step = float(np.linalg.norm(world.poses[5, :3, 3] - world.poses[0, :3, 3]))
+    ours, theirs = _track(process, world, range(1, 6)), _track(local, world, range(1, 6))
+    for i, (a, b) in enumerate(zip(ours, theirs), start=1):
+        assert a.ok and a.ref_seq == 0 and np.allclose(a.pose, b.pose, atol=1e-9)
+        trans, rot = _errors(torch.from_numpy(a.pose), world.poses[i])
+        assert trans < 0.05 * step + 2e-3 and rot < 0.3, (i, trans, rot)
+        assert np.allclose(world.poses[0] @ a.ref_from_cam, a.pose)  # relative to the reference keyframe
+    predicted = process.predict(world.render(6).t_ns)
+    assert predicted is not None and np.allclose(predicted, local.predict(world.render(6).t_ns), atol=1e-9)
+
+
+def test_a_killed_child_is_started_again_from_the_last_reference(world, process):
+    process.set_reference(_reference(world, 0))
+    first = _track(process, world, [1])[0]
+    os.kill(process._proc.pid, signal.SIGKILL)
+    process._proc.join(timeout=5)
+    again = _track(process, world, [2])[0]
+    assert process.restarts == 1
+    assert again is not None and again.ok and again.ref_seq == 0  # it tracked against mapping's reference
+    fresh = LocalTracker(BaSettings(tracking_process=False)._make_tracker())  # no motion history, as the new child
+    fresh.set_reference(_reference(world, 0))
+    assert first.ok and np.allclose(again.pose, _track(fresh, world, [2])[0].pose, atol=1e-9)
+    trans, _ = _errors(torch.from_numpy(again.pose), world.poses[2])
+    assert trans < 0.1 * float(np.linalg.norm(world.poses[2, :3, 3] - world.poses[0, :3, 3]))
+
+
+def test_an_error_in_the_child_is_raised_here_and_the_child_serves_on(world, process):
+    process.set_reference(_reference(world, 0))
+    with pytest.raises(RuntimeError, match="image expected"):  # the child's error, raised on this side
+        process.step(False, 1, 0, np.zeros((2, 2, 2, 2), np.uint8), np.array([1.0, 1.0, 0.0, 0.0]))
+    assert _track(process, world, [1])[0].ok and process.restarts == 0
+
+
+def test_keyframes_tracking_moves_on_to_keep_the_following_frames_on_the_exact_trajectory(world, process):
+    """Mapping stays at keyframe 0 while keyframes 3 and 6 come (its BA is behind): tracking promotes keyframe 6 with
+    its working-size image and carried-over depth, and frames after it are tracked against it."""
+    process.set_reference(_reference(world, 0))
+    for i in (1, 2, 3, 4, 5, 6, 7, 8):
+        f = world.render(i)
+        if i in (3, 6):  # keyframes come at working size, in colour, with their working intrinsics
+            out = process.step(True, i, f.t_ns, f.rgb, np.asarray(f.intrinsics, np.float64))
+        else:
+            out = process.step(False, i, f.t_ns, _grey(f.rgb, half=True), np.asarray(f.intrinsics) / 2)
+        assert out is not None and out.ok, i
+        trans, rot = _errors(torch.from_numpy(out.pose), world.poses[i])
+        travelled = float(np.linalg.norm(world.poses[i, :3, 3] - world.poses[0, :3, 3]))
+        assert trans < 0.1 * travelled + 5e-3 and rot < 0.5, (i, trans, rot)
+        assert out.ref_seq == (6 if i > 6 else 0), (i, out.ref_seq)  # after keyframe 6, aligned to it
