@@ -114,3 +114,33 @@ def test_a_real_run_reports_posed_fraction_latency_drops_and_resources(tmp_path,
         assert summary["drops"] == {stage: 0 for stage in STAGES} and summary["posed_fraction"] == 1.0
     for line in ("posed (any pose):", "ATE first poses:", "dropped:", "CPU, peak RSS:"):
         assert line in stdout
+
+
+def test_a_service_s_own_child_processes_count_in_its_cpu_and_memory():
+    """ba starts a tracking process of its own: the summary's CPU and RSS of a service include its children."""
+    import subprocess
+    import sys as _sys
+    import time as _time
+
+    import psutil
+
+    hold = "import time; x = bytearray(200 * 1024 * 1024); t = time.time()\nwhile time.time() - t < 1.5: pass\ntime.sleep(60)"
+    parent = subprocess.Popen([_sys.executable, "-c", f"import subprocess, sys, time; "
+                               f"subprocess.Popen([sys.executable, '-c', {hold!r}]); time.sleep(60)"])
+    try:
+        proc = psutil.Process(parent.pid)
+        deadline = _time.monotonic() + 30
+        while _time.monotonic() < deadline and not (proc.children() and proc.children()[0].cpu_times().user > 1.0):
+            _time.sleep(0.1)
+        monitor = ResourceMonitor()
+        monitor.watch("svc", parent.pid)
+        monitor.sample()
+        use = monitor.usage["svc"]
+        own = proc.memory_info().rss / 2**20
+        assert use.rss_mb > own + 190  # the child's 200 MB are the service's
+        assert use.cpu_s > 1.0  # the child's busy second and a half, not the sleeping parent's
+    finally:
+        for child in psutil.Process(parent.pid).children(recursive=True):
+            child.kill()
+        parent.kill()
+        parent.wait()

@@ -316,8 +316,13 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
                                                          durable=checkpoints.durable))
                 next_progress = time.monotonic() + PROGRESS_PERIOD_S
             delivery = mapping.get(POLL_S)
-            if delivery is None:
-                for key, out in _refine_while_idle(state, (mapping, track_box), cfg):
+            # a live camera's frames reach mapping too, so its inbox is never empty for long: between them is
+            # mapping's spare time. A tracking thread in this interpreter needs it at once for every frame; a
+            # tracking process does not
+            live_frame = delivery is not None and isinstance(delivery.msg, FrameLite) and delivery.msg.realtime
+            if delivery is None or (live_frame and cfg.tracking_process):
+                waits_for = (mapping,) if cfg.tracking_process else (mapping, track_box)
+                for key, out in _refine_while_idle(state, waits_for, cfg):
                     bus.publish(key, out)
             msg = delivery.msg if delivery is not None else None
             if isinstance(msg, Eos) and msg.stage == "features":
@@ -371,9 +376,9 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
 
 def _refine_while_idle(state: BaState, inboxes: tuple[Inbox, ...], cfg: BaSettings) -> Outputs:
     """Mapping has nothing queued: a live stream's frames that tracking posed are aligned again with mapping's own
-    flow (``Frontend.refine_frame``), a few at a time, until a message comes for mapping or for tracking (the two
-    threads share the interpreter: tracking's frame must not wait behind a refinement); their revised poses go
-    out."""
+    flow (``Frontend.refine_frame``), a few at a time, until a message comes to one of ``inboxes`` (mapping's, and
+    tracking's when tracking runs on a thread of this interpreter: its frame must not wait behind a refinement);
+    their revised poses go out."""
     out: Outputs = []
     for _ in range(cfg.refine_frames_per_idle):
         if any(box.qsize() for box in inboxes):
@@ -385,6 +390,7 @@ def _refine_while_idle(state: BaState, inboxes: tuple[Inbox, ...], cfg: BaSettin
             break
         if update.poses is None:
             break
+        log.debug("frame refined", extra={"stream": state.stream, "seq": int(update.poses.frame_seqs[-1])})
         out.append(_poses_out(state.stream, int(update.poses.frame_seqs[-1]), time.time_ns(), update.poses, False))
     if not out and not any(box.qsize() for box in inboxes):
         out += _refine_globally(state)

@@ -1,6 +1,7 @@
 """CPU time and memory of the runner's service processes, sampled while the stream runs (for the summary).
 
-Each service is one child process (the services start no processes of their own). The runner calls
+Each service is one child process of the runner, with its own children counted in (ba's tracking process). The
+runner calls
 :meth:`ResourceMonitor.sample` from its follow loop about every half second, and always before it polls the
 children (``Popen.poll`` reaps an exited child, after which its CPU time is gone; before that a zombie still
 reports it). Peak RSS is the largest sample; CPU is user + system seconds at the last sample, and ``cpu_stream_s``
@@ -78,13 +79,31 @@ class ResourceMonitor:
 
 
 def _process_usage(proc: psutil.Process) -> tuple[float | None, float | None]:
-    """CPU seconds and RSS bytes of ``proc`` (the services start no processes of their own); None for what can
-    no longer be read (a zombie still has its CPU times, its RSS reads 0)."""
+    """CPU seconds and RSS bytes of ``proc`` and the processes it started (ba's tracking process: live ones
+    sampled, ended ones in the parent's children times); None for what can no longer be read (a zombie still has
+    its CPU times, its RSS reads 0)."""
+    cpu, rss = _own_usage(proc, with_reaped=True)
+    try:
+        children = proc.children(recursive=True)
+    except (psutil.NoSuchProcess, psutil.AccessDenied):
+        children = []
+    for child in children:
+        child_cpu, child_rss = _own_usage(child, with_reaped=False)
+        if cpu is not None and child_cpu is not None:
+            cpu += child_cpu
+        if rss is not None and child_rss is not None:
+            rss += child_rss
+    return cpu, rss
+
+
+def _own_usage(proc: psutil.Process, with_reaped: bool) -> tuple[float | None, float | None]:
     cpu = rss = None
     with proc.oneshot():
         try:
             times = proc.cpu_times()
             cpu = times.user + times.system
+            if with_reaped:
+                cpu += times.children_user + times.children_system
         except (psutil.NoSuchProcess, psutil.AccessDenied):
             pass
         try:
