@@ -210,3 +210,34 @@ def test_a_batch_commits_each_message_and_fuses_once_to_the_same_map(tmp_path):
     np.testing.assert_allclose(a.codes, b.codes, atol=1e-5)
     one.close()
     batched.close()
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="thread niceness is read from Linux /proc")
+def test_the_map_is_fused_on_a_thread_behind_tracking_and_mapping(tmp_path, tcp_endpoint):
+    """The stream's thread (commits and re-fusion) runs at ``fusion_nice``; the process's other threads (the bus,
+    queries) keep their own priority."""
+    import threading
+
+    from services.common.bus import Bus
+    from services.common.config import BusSettings
+    from services.mapstore.service import run
+    from tests.conftest import wait_until
+
+    def niceness() -> dict[int, int]:
+        out = {}
+        for task in Path("/proc/self/task").iterdir():
+            fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
+            out[int(task.name)] = int(fields[16])  # field 19 of stat: nice (after pid and comm)
+        return out
+
+    before = niceness()
+    stop = threading.Event()
+    with Bus(BusSettings(mode="peer", listen=[tcp_endpoint]), "mapstore") as bus:
+        worker = threading.Thread(target=run, args=(settings(tmp_path, fusion_nice=7), bus, stop), daemon=True)
+        worker.start()
+        wait_until(lambda: worker.native_id in niceness() and niceness()[worker.native_id] == 7, 30,
+                   "the stream thread at niceness 7")
+        others = {tid: n for tid, n in niceness().items() if tid != worker.native_id}
+        stop.set()
+        worker.join(timeout=10)
+    assert set(others.values()) <= set(before.values()) | {0}  # nobody else was made nicer

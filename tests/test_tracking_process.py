@@ -50,7 +50,7 @@ def test_a_reference_crosses_the_pipe_unchanged(world):
 
 
 def test_the_child_tracks_as_the_thread_does_to_the_exact_trajectory(world, process):
-    local = LocalTracker(BaSettings(tracking_process=False)._make_tracker())
+    local = LocalTracker(BaSettings(tracking_process=False).tracker_factory())
     for tracker in (local, process):
         tracker.set_reference(_reference(world, 0))
     step = float(np.linalg.norm(world.poses[5, :3, 3] - world.poses[0, :3, 3]))
@@ -72,7 +72,7 @@ def test_a_killed_child_is_started_again_from_the_last_reference(world, process)
     again = _track(process, world, [2])[0]
     assert process.restarts == 1
     assert again is not None and again.ok and again.ref_seq == 0  # it tracked against mapping's reference
-    fresh = LocalTracker(BaSettings(tracking_process=False)._make_tracker())  # no motion history, as the new child
+    fresh = LocalTracker(BaSettings(tracking_process=False).tracker_factory())  # no motion history, as the new child
     fresh.set_reference(_reference(world, 0))
     assert first.ok and np.allclose(again.pose, _track(fresh, world, [2])[0].pose, atol=1e-9)
     trans, _ = _errors(torch.from_numpy(again.pose), world.poses[2])

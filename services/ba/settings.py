@@ -139,16 +139,16 @@ class BaSettings(BASettings):
 
     def tracker(self) -> "Tracker":
         """The frame-rate tracker with these settings."""
-        return self._make_tracker()()
+        return self.tracker_factory()()
 
     def tracking_core(self) -> "LocalTracker | TrackerProcess":
         """The tracker as the tracking thread drives it: in a child process (``tracking_process``) or in-thread."""
         from services.ba.tracking_process import LocalTracker, TrackerProcess
         if self.tracking_process:
-            return TrackerProcess(self._make_tracker(), self.tracking_nice, name=f"kmvipe-tracking-{self.stream}")
-        return LocalTracker(self._make_tracker())
+            return TrackerProcess(self.tracker_factory(), self.tracking_nice, name=f"kmvipe-tracking-{self.stream}")
+        return LocalTracker(self.tracker_factory())
 
-    def _make_tracker(self) -> "Callable[[], Tracker]":
+    def tracker_factory(self) -> "Callable[[], Tracker]":
         """A picklable factory of the tracker (a child process builds its own)."""
         from services.ba.frontend.tracker import Tracker
         return functools.partial(Tracker, self.frontend_params().motion, self.tracking_flow_params(),
