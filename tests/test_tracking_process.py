@@ -101,3 +101,27 @@ def test_keyframes_tracking_moves_on_to_keep_the_following_frames_on_the_exact_t
         travelled = float(np.linalg.norm(world.poses[i, :3, 3] - world.poses[0, :3, 3]))
         assert trans < 0.1 * travelled + 5e-3 and rot < 0.5, (i, trans, rot)
         assert out.ref_seq == (6 if i > 6 else 0), (i, out.ref_seq)  # after keyframe 6, aligned to it
+
+
+def test_a_process_started_ahead_is_taken_by_the_first_stream_with_the_same_settings(world):
+    from services.ba import tracking_process
+
+    settings = BaSettings()
+    tracking_process.prewarm(settings.tracker_factory())
+    other = TrackerProcess(BaSettings(tracking_promote_after=3).tracker_factory())
+    same = settings.tracking_core()
+    try:
+        other_started = tracking_process._take_spare(other.make_tracker, other.niceness)
+        assert other_started is None  # other settings: the spare is not theirs (and is closed)
+        tracking_process._Spare.starting = None
+        tracking_process.prewarm(settings.tracker_factory())
+        spare_pid = None
+        tracking_process._Spare.starting.join(60)
+        spare_pid = tracking_process._Spare.ready._proc.pid
+        same.start()
+        assert same._proc.pid == spare_pid and tracking_process._Spare.ready is None
+        same.set_reference(_reference(world, 0))
+        assert _track(same, world, [1])[0].ok
+    finally:
+        same.close()
+        tracking_process._Spare.starting = tracking_process._Spare.ready = None

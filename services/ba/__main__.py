@@ -8,12 +8,15 @@ import sys
 from services.ba.checkpoint import pending
 from services.ba.service import build_state, run
 from services.ba.settings import BaSettings
+from services.ba.tracking_process import prewarm
 from services.common.service_main import service_main
 from services.common.streams import serve
 
 
 def _body(bus, stop) -> None:
     cfg = BaSettings()
+    if cfg.tracking_process:  # its torch import overlaps with waiting for the first stream
+        prewarm(cfg.tracker_factory(), cfg.tracking_nice)
 
     def one(stream, stream_bus, stream_stop):
         settings = cfg.model_copy(update={"stream": stream})

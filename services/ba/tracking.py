@@ -49,13 +49,18 @@ class TrackingLoop:
         self._thread = threading.Thread(target=self._run, name=f"stream-{stream}/tracking", daemon=True)
 
     def start(self) -> None:
-        try:  # a child process takes seconds to import torch: it does so while the stream starts
+        self._thread.start()
+
+    def _start_tracker(self) -> None:
+        """On the tracking thread, so mapping's loop (its progress reports, a resumed stream's catch-up) never
+        waits for it: a tracking process that was not started ahead (``prewarm``) takes seconds to import torch,
+        and frames meanwhile queue in the inbox (a real-time stream's stale ones are dropped and counted)."""
+        try:
             self.tracker.start()
         except RuntimeError as exc:  # tracking on a thread of ba is slower, not wrong
             log.error("tracking process did not start; tracking on a thread of ba instead",
                       extra={"stream": self.stream, "error": str(exc)})
             self.tracker = LocalTracker(self.tracker.make_tracker)
-        self._thread.start()
 
     def stop(self) -> None:
         self._stop.set()
@@ -74,6 +79,7 @@ class TrackingLoop:
 
     def _run(self) -> None:
         nice_this_thread(self.niceness)
+        self._start_tracker()
         while not self._stop.is_set():
             delivery = self.inbox.get(POLL_S)
             try:

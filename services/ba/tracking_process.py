@@ -12,9 +12,11 @@ in hand is tracked by the new child, nothing waits forever (``timeout_s``), and 
 """
 from __future__ import annotations
 
+import functools
 import logging
 import multiprocessing as mp
 import os
+import threading
 from typing import Callable, NamedTuple
 
 import cv2
@@ -153,6 +155,13 @@ class TrackerProcess:
         self._proc = self._conn = None
 
     def start(self) -> None:
+        spare = _take_spare(self.make_tracker, self.niceness)
+        if spare is not None:  # started with the ba process, while it connected and waited for a stream
+            self._proc, self._conn = spare._proc, spare._conn
+            return
+        self._spawn()
+
+    def _spawn(self) -> None:
         ctx = mp.get_context("spawn")
         self._conn, child = ctx.Pipe()
         self._proc = ctx.Process(target=_serve, args=(child, self.make_tracker, self.niceness, self.threads),
@@ -217,9 +226,58 @@ class TrackerProcess:
         self._proc.kill()
         self._proc.join(timeout=2)
         self._proc = None
-        self.start()
+        self._spawn()
         if self._reference is not None:  # as mapping left it; the call in hand follows
             self._conn.send(("reference", (self._reference,)))
             if not self._conn.poll(self.timeout_s):
                 raise RuntimeError("the new tracking process took no reference")
             self._conn.recv()
+
+
+class _Spare:
+    """One tracking process started ahead of the first stream (:func:`prewarm`)."""
+
+    lock = threading.Lock()
+    starting: threading.Thread | None = None
+    ready: TrackerProcess | None = None
+
+
+def prewarm(make_tracker: Callable[[], Tracker], niceness: int = 0) -> None:
+    """Start a tracking process now, in the background, for the first stream to take: spawning one imports torch
+    (seconds), and a stream's first frames would wait for it."""
+    def start() -> None:
+        proc = TrackerProcess(make_tracker, niceness)
+        try:
+            proc._spawn()
+        except RuntimeError as exc:
+            log.warning("no tracking process ahead of the first stream", extra={"error": str(exc)})
+            return
+        with _Spare.lock:
+            _Spare.ready = proc
+
+    with _Spare.lock:
+        if _Spare.starting is None:
+            _Spare.starting = threading.Thread(target=start, name="tracking-prewarm", daemon=True)
+            _Spare.starting.start()
+
+
+def _same_factory(a: Callable, b: Callable) -> bool:
+    if isinstance(a, functools.partial) and isinstance(b, functools.partial):
+        return (a.func, a.args, a.keywords) == (b.func, b.args, b.keywords)
+    return a == b
+
+
+def _take_spare(make_tracker: Callable[[], Tracker], niceness: int) -> TrackerProcess | None:
+    """The process :func:`prewarm` started, when it tracks with the same settings (waiting for it to come up)."""
+    with _Spare.lock:
+        starting = _Spare.starting
+    if starting is None:
+        return None
+    starting.join(timeout=60)
+    with _Spare.lock:
+        spare, _Spare.ready = _Spare.ready, None
+    if spare is None or spare.niceness != niceness or not _same_factory(spare.make_tracker, make_tracker):
+        if spare is not None:
+            spare.close()
+        return None
+    return spare
