@@ -168,7 +168,7 @@ class TrackerProcess:
                                  name=self.name, daemon=True)
         self._proc.start()
         child.close()
-        # ready before ba says it is: frames that came while the child imported torch would queue up and drop
+        # up before the first frame is sent to it: a frame must not wait behind the torch import
         try:
             started = self._conn.poll(self.timeout_s) and self._conn.recv() == (True, "ready")
         except (EOFError, OSError):  # it died on the way up
