@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.ba import service
+from services.ba import recovery, service
 from services.ba.checkpoint import Checkpointer, path_for, snapshot
 from services.ba.settings import BaSettings
 from services.common import keys
@@ -44,7 +44,7 @@ def test_a_state_restored_from_its_checkpoint_continues_exactly_like_the_uninter
 
     resumed = service.build_state(cfg)  # a new process: nothing but the file
     loader = Checkpointer(str(tmp_path), STREAM, "s1", period_s=2.0)
-    assert service._resume(resumed, loader, cfg) == 13 and loader.durable == 13
+    assert recovery.resume(resumed, loader, cfg) == 13 and loader.durable == 13
     assert resumed.frontend.graph.seqs == uninterrupted.frontend.graph.seqs and resumed.keyframes == 4
     for msg in msgs[14:]:
         a, b = service.handle(uninterrupted, msg, cfg), service.handle(resumed, msg, cfg)

@@ -39,12 +39,13 @@ from services.common.pca_codes import code_map, convert_codes
 from services.common.pca_fetch import BasisFetch
 from services.common.bus import Delivery, Inbox
 from services.common.lifecycle import MemoryRelease, nice_this_thread
-from services.common.restarts import Restarts, consumer_name
+from services.common.restarts import consumer_name
 from services.common.streams import hold, session_of
-from services.common.schema import (Credit, Eos, FrameLite, Graph, Intrinsics, Keyframe, KeyframeCodes, Message,
-                                    PcaBasis, Poses)
+from services.common.schema import Credit, Eos, FrameLite, Keyframe, KeyframeCodes, Message, PcaBasis
+from services.ba import recovery
+from services.ba.outputs import Outputs, outputs_at, outputs_of, poses_out
 from services.ba.checkpoint import Checkpointer
-from services.ba.frontend.frontend import FrameInput, Frontend, KeyframeInput, PoseUpdate, Update
+from services.ba.frontend.frontend import FrameInput, Frontend, KeyframeInput
 from services.ba.frontend.graph import NativeCodes
 from services.ba.settings import BaSettings
 from services.ba.tracking import TrackingLoop
@@ -53,7 +54,6 @@ log = logging.getLogger(__name__)
 POLL_S = 0.05
 PROGRESS_PERIOD_S = 0.1
 
-Outputs = list[tuple[str, Message]]
 
 
 @dataclass
@@ -106,7 +106,7 @@ def handle_keyframe(state: BaState, msg: Keyframe, cfg: BaSettings) -> Outputs:
                                                        _defer(state, msg, cfg)))
     state.keyframes += 1
     state.last_seq = max(state.last_seq, msg.seq)
-    return _outputs(state, msg, update, final=False)
+    return outputs_of(state.frontend, msg, update, final=False)
 
 
 def _pose_guess(state: BaState, seq: int) -> torch.Tensor | None:
@@ -173,7 +173,7 @@ def handle_frame_lite(state: BaState, msg: FrameLite | Keyframe, cfg: BaSettings
     # behind the camera
     cheap = msg.realtime and anchor is None
     update = state.frontend.add_frame(FrameInput(msg.seq, msg.t_ns, msg.image, tracked, cheap, world))
-    return _outputs(state, msg, update, final=False)
+    return outputs_of(state.frontend, msg, update, final=False)
 
 
 def _in_current_version(state: BaState, native: NativeCodes) -> np.ndarray | None:
@@ -213,7 +213,7 @@ def handle_eos(state: BaState, msg: Eos, cfg: BaSettings) -> Outputs:
         return []
     log.info("end of stream: global BA", extra={"stream": msg.stream, "seq": msg.seq, "keyframes": state.keyframes})
     try:
-        outputs = _outputs(state, msg, state.frontend.finish(), final=True)
+        outputs = outputs_of(state.frontend, msg, state.frontend.finish(), final=True)
     except (ValueError, RuntimeError):  # the stream must still end downstream
         log.exception("global BA failed; last online state stands", extra={"stream": msg.stream, "seq": msg.seq})
         state.rejected["global_ba"] += 1
@@ -228,33 +228,6 @@ def handle_eos(state: BaState, msg: Eos, cfg: BaSettings) -> Outputs:
     state.keyframes, state.keyframes_seen, state.last_seq, state.merged = 0, 0, -1, 0
     state.early_codes.clear()
     return outputs + [(keys.topic(msg.stream, keys.EOS), eos)]
-
-
-def _outputs(state: BaState, msg: Message, update: Update, final: bool) -> Outputs:
-    return _outputs_at(state, msg.stream, msg.seq, msg.t_ns, update, final)
-
-
-def _outputs_at(state: BaState, stream: str, seq: int, t_ns: int, update: Update, final: bool) -> Outputs:
-    out: Outputs = []
-    fe = state.frontend
-    width, height = fe.size
-    if update.graph is not None:
-        g = update.graph
-        out.append((keys.topic(stream, keys.GRAPH), Graph(
-            stream, seq, t_ns, kf_seqs=g.kf_seqs, poses=g.poses, intrinsics=g.intrinsics, width=width,
-            height=height, updated_seqs=g.updated_seqs, disparities=g.disparities, static_weights=g.static_weights,
-            confidence=g.confidence, metric=g.metric, final=final)))
-    if update.poses is not None:
-        out.append(_poses_out(stream, seq, t_ns, update.poses, final))
-    if update.intrinsics_changed or (final and fe.intrinsics is not None):
-        out.append((keys.topic(stream, keys.INTRINSICS), Intrinsics(
-            stream, seq, t_ns, intrinsics=fe.intrinsics, width=width, height=height)))
-    return out
-
-
-def _poses_out(stream: str, seq: int, t_ns: int, poses: PoseUpdate, final: bool) -> tuple[str, Poses]:
-    return keys.topic(stream, keys.POSE), Poses(stream, seq, t_ns, frame_seqs=poses.frame_seqs,
-                                                stamps_ns=poses.stamps_ns, poses=poses.poses, final=final)
 
 
 HANDLERS = {Keyframe: handle_keyframe, FrameLite: handle_frame_lite, KeyframeCodes: handle_codes, PcaBasis: handle_pca,
@@ -280,7 +253,7 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
     state = state or build_state(cfg)
     session = session_of(bus)  # None outside a host (a pinned service): no session, no checkpoint to resume
     checkpoints = Checkpointer(cfg.checkpoint_dir if session else "", cfg.stream, session, cfg.checkpoint_period_s)
-    resumed_at = _resume(state, checkpoints, cfg)
+    resumed_at = recovery.resume(state, checkpoints, cfg)
     consumer = consumer_name("ba", bus.instance)  # a new name per start: features sees a resumed ba
     topic = lambda name: keys.topic(cfg.stream, name)  # noqa: E731
     mapping = bus.inbox({topic(keys.PCA): [PcaBasis], topic(keys.CODES): [KeyframeCodes], topic(keys.EOS): [Eos]},
@@ -296,7 +269,7 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
         bus.subscribe(topic(name), to_both, [kind])
     tracking = TrackingLoop(cfg.tracking_core(), bus, track_box, cfg.stream,
                             state.anchors, cfg.tracking_nice)
-    restarted_mapstore = _watch_mapstores(bus, topic(keys.PROGRESS))
+    restarted_mapstore = recovery.watch_mapstores(bus, topic(keys.PROGRESS))
     release = MemoryRelease(cfg.release_memory_period_s)
     mapstore_done = False
     tracking.start()
@@ -320,14 +293,14 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
             # mapping's spare time. A tracking thread in this interpreter needs it at once for every frame; a
             # tracking process does not
             live_frame = delivery is not None and isinstance(delivery.msg, FrameLite) and delivery.msg.realtime
-            if delivery is None or (live_frame and cfg.tracking_process):
-                waits_for = (mapping,) if cfg.tracking_process else (mapping, track_box)
+            if delivery is None or (live_frame and tracking.in_process):
+                waits_for = (mapping,) if tracking.in_process else (mapping, track_box)
                 for key, out in _refine_while_idle(state, waits_for, cfg):
                     bus.publish(key, out)
             msg = delivery.msg if delivery is not None else None
             if isinstance(msg, Eos) and msg.stage == "features":
                 eos, msg = (msg, time.monotonic() + cfg.eos_wait_s), None
-            if isinstance(msg, (Keyframe, FrameLite)) and _seen_before(state, msg, resumed_at):
+            if isinstance(msg, (Keyframe, FrameLite)) and recovery.seen_before(state, msg, resumed_at):
                 msg = None  # sent again (to a consumer that resumed), or in flight when ba was killed
             if isinstance(msg, Eos) and msg.stage == "mapstore":
                 mapstore_done = True
@@ -358,7 +331,8 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
                 if isinstance(msg, Keyframe) and msg.codes is not None and msg.pca_version not in state.bases:
                     state.pca_fetch.want(msg.pca_version)
             state.pca_fetch.run_due(bus, cfg.stream, state.bases, lambda basis: handle(state, basis, cfg))
-            if eos is not None and (_stream_complete(state, eos[0], mapping.qsize()) or time.monotonic() > eos[1]):
+            if eos is not None and (recovery.stream_complete(state, eos[0], mapping.qsize())
+                                    or time.monotonic() > eos[1]):
                 state.dropped = mapping.dropped + track_box.dropped
                 for key, out in handle(state, eos[0], cfg):
                     bus.publish(key, out)
@@ -391,7 +365,7 @@ def _refine_while_idle(state: BaState, inboxes: tuple[Inbox, ...], cfg: BaSettin
         if update.poses is None:
             break
         log.debug("frame refined", extra={"stream": state.stream, "seq": int(update.poses.frame_seqs[-1])})
-        out.append(_poses_out(state.stream, int(update.poses.frame_seqs[-1]), time.time_ns(), update.poses, False))
+        out.append(poses_out(state.stream, int(update.poses.frame_seqs[-1]), time.time_ns(), update.poses, False))
     if not out and not any(box.qsize() for box in inboxes):
         out += _refine_globally(state)
     return out
@@ -407,42 +381,4 @@ def _refine_globally(state: BaState) -> Outputs:
         return []
     if update.graph is None:
         return []
-    return _outputs_at(state, state.stream, int(update.graph.kf_seqs[-1]), time.time_ns(), update, final=False)
-
-
-def _seen_before(state: BaState, msg: Keyframe | FrameLite, resumed_at: int) -> bool:
-    """A frame or keyframe this stream's state already holds: covered by the checkpoint it resumed from, of a
-    stream that ended, or a keyframe no newer than the graph's newest (features sends keyframes in order)."""
-    if msg.seq <= resumed_at or msg.seq <= state.ended_upto:
-        return True
-    graph = state.frontend.graph
-    return isinstance(msg, Keyframe) and graph is not None and bool(graph.seqs) and msg.seq <= graph.seqs[-1]
-
-
-def _watch_mapstores(bus, key: str) -> threading.Event:
-    """Set whenever a mapstore consumer appears after another one did (a mapstore that restarted)."""
-    mapstores, restarted = Restarts("mapstore-"), threading.Event()
-
-    def on_progress(delivery: Delivery) -> None:
-        if mapstores.replaced_by(delivery.msg.consumer):
-            restarted.set()
-
-    bus.subscribe(key, on_progress, [Credit])
-    return restarted
-
-
-def _resume(state: BaState, checkpoints: Checkpointer, cfg: BaSettings) -> int:
-    """Put the stream's checkpoint, if there is one, into ``state``; the seq it holds (-1: none)."""
-    ckpt = checkpoints.load(state.frontend.device)
-    if ckpt is None:
-        return -1
-    for name, value in ckpt.fields.items():
-        setattr(state, name, value)
-    log.info("resumed from checkpoint", extra={"stream": cfg.stream, "seq": ckpt.seq, "keyframes": state.keyframes})
-    return ckpt.seq
-
-
-def _stream_complete(state: BaState, eos: Eos, queued: int) -> bool:
-    """Zenoh keeps order per key, not across keys: the EOS can overtake the last keyframes. It is handled once
-    every keyframe features announced (its ``count``) has arrived and nothing else is queued."""
-    return state.keyframes_seen >= eos.count and queued == 0
+    return outputs_at(state.frontend, state.stream, int(update.graph.kf_seqs[-1]), time.time_ns(), update, final=False)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Callable, Literal
+from typing import TYPE_CHECKING, Callable, Literal
 
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
@@ -17,6 +17,10 @@ from services.ba.core.params import FlowParams
 
 from services.ba.config import BASettings
 from services.ba.frontend.params import FrontendParams, GraphParams, InitParams, MotionParams
+
+if TYPE_CHECKING:  # both import torch: only where a tracker is made
+    from services.ba.frontend.tracker import Tracker
+    from services.ba.tracking_process import LocalTracker, TrackerProcess
 
 
 class BaSettings(BASettings):

@@ -36,7 +36,6 @@ class TrackingLoop:
         self._lock = threading.Lock()
         self._pending_ref: Reference | None = None
         self._reset = False
-        self._has_reference = False
         self.tracked = 0  # frames posed by tracking in this stream
         self.last_seq = -1  # highest seq handled (for progress reports)
         # seq -> (reference keyframe seq, (4, 4) reference_from_cam, (4, 4) world_from_cam): mapping anchors the
@@ -50,6 +49,12 @@ class TrackingLoop:
 
     def start(self) -> None:
         self._thread.start()
+
+    @property
+    def in_process(self) -> bool:
+        """Whether the tracker runs in a process of its own (False: on this thread, in mapping's interpreter, as
+        configured or because its process did not start)."""
+        return isinstance(self.tracker, TrackerProcess)
 
     def _start_tracker(self) -> None:
         """On the tracking thread, so mapping's loop (its progress reports, a resumed stream's catch-up) never
@@ -100,16 +105,13 @@ class TrackingLoop:
             ref, self._pending_ref = self._pending_ref, None
         if reset:
             self.tracker.reset()
-            self.tracked, self._has_reference = 0, False
+            self.tracked = 0
             self.anchors.clear()
         if ref is not None:
             self.tracker.set_reference(ref)
-            self._has_reference = True
 
     def _predicted(self, msg: FrameLite | Keyframe) -> None:
-        if not self._has_reference:
-            return
-        pose = self.tracker.predict(msg.t_ns)
+        pose = self.tracker.predict(msg.t_ns)  # None before the map
         if pose is not None:
             self._publish(msg, pose)
 

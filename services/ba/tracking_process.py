@@ -42,8 +42,8 @@ class Step(NamedTuple):
 def step(tracker: Tracker, is_keyframe: bool, seq: int, t_ns: int, image: np.ndarray,
          intrinsics: np.ndarray) -> Step | None:
     """Track one frame (a keyframe moves tracking on to it); None before the map when nothing can be said."""
-    grey = to_grey(image) if is_keyframe else image
-    if is_keyframe:  # before the map, provisional poses run at the size frames arrive in
+    if is_keyframe:  # tracked at the size frames arrive in; its working-size image may become the reference
+        grey = to_grey(image)
         image, intrinsics = half_size(grey, intrinsics)
     out = tracker.track(seq, t_ns, image, intrinsics)
     if out is None:

@@ -240,9 +240,7 @@ class Frontend:
         # frames after the last keyframe too: at the end no later keyframe will come to bracket them
         for seq in [s for s, f in self.frames.frames.items() if f.anchor is None]:
             self.frames.align(g, seq)
-        deadline = time.monotonic() + self.params.final_align_s
-        self._align_unmeasured(deadline)
-        self._realign_measured(deadline)
+        self._align_at_end(time.monotonic() + self.params.final_align_s)
         return self._update(list(range(len(g))), every_frame=True)
 
     def refine_globally(self) -> Update:
@@ -271,25 +269,21 @@ class Frontend:
         return g.run(everything, g.pairs(everything, self.params.graph.global_radius),
                      self._ba_params(everything, self.params.global_ba), should_stop) is not None
 
-    def _align_unmeasured(self, deadline: float) -> None:
-        """Frames still held whose pose no flow of mapping's measured are aligned to their final keyframes, oldest
-        first, until ``deadline`` (time.monotonic())."""
-        todo = self.frames.unmeasured()
+    def _align_at_end(self, deadline: float) -> None:
+        """Frames still held are aligned to their final keyframes with mapping's flow, oldest first, until
+        ``deadline`` (time.monotonic()): those no flow of mapping's measured yet (tracking's or interpolated poses),
+        then those measured while the focal was still settling, more than ``realign_focal_change`` off the final
+        one (their flow is kept: only the solve runs again; a 40 deg lens whose calibration started 18 % short:
+        2.5 -> 1.2 % of path, docs/BENCHMARKS.md)."""
+        g = self.graph
+        todo = self.frames.unmeasured() + self.frames.stale_focal(float(g.intrinsics[0]),
+                                                                   self.params.realign_focal_change)
         for done, seq in enumerate(todo):
             if time.monotonic() >= deadline:
-                logger.info("end of stream: frames left with tracking's poses (time bound)",
+                logger.info("end of stream: frames left with their earlier poses (time bound)",
                             extra={"aligned": done, "left": len(todo) - done})
                 break
-            self.frames.measure(self.graph, seq)
-
-    def _realign_measured(self, deadline: float) -> None:
-        """Frames aligned with mapping's flow while the focal was still settling (more than
-        ``realign_focal_change`` off the final one) are aligned again with the same flow, oldest first, until
-        ``deadline``. A 40 deg lens whose calibration started 18 % short: 2.5 -> 1.2 % of path (docs/BENCHMARKS.md)."""
-        for seq in self.frames.stale_focal(float(self.graph.intrinsics[0]), self.params.realign_focal_change):
-            if time.monotonic() >= deadline:
-                break
-            self.frames.align(self.graph, seq)
+            self.frames.measure(g, seq)
 
     def refine_frame(self) -> Update:
         """Mapping's spare time on a live stream: the oldest frame whose pose no flow of mapping's measured yet
