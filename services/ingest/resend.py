@@ -27,6 +27,9 @@ class ResendBuffer:
         self._restarts = Restarts(PREFIX)
         self._pending = False
         self.durable = -1
+        # frames are kept only once a features instance reports what it handled: only it asks for them again, and
+        # without its reports nothing would ever trim them (a stream to another consumer kept every frame)
+        self._watched = False
 
     def on_credit(self, msg: Credit) -> None:
         """A credit message (Zenoh thread)."""
@@ -34,6 +37,7 @@ class ResendBuffer:
             return
         restarted = bool(self._restarts.replaced_by(msg.consumer))  # it lost what was in flight to its predecessor
         with self._lock:
+            self._watched = True
             self._pending = self._pending or restarted
             # what any features instance handled went on downstream: a restarted one needs only what came after
             self.durable = max(self.durable, msg.durable)
@@ -45,8 +49,9 @@ class ResendBuffer:
             if isinstance(msg, Eos):
                 self._eos = msg
                 return
-            self._frames.append(msg)
             self._last = msg
+            if self._watched:
+                self._frames.append(msg)
             self._trim()
 
     def _trim(self) -> None:

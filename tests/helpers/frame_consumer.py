@@ -53,6 +53,9 @@ def main() -> None:
             time.sleep(args.delay)  # a slow stage
             last = delivery.msg.seq
         stop.set()
+        if eos is not None:  # as features does: the source may stop holding the stream for a restart of ours
+            bus.publish(keys.topic(args.stream, keys.EOS), Eos(args.stream, eos.seq, time.time_ns(), stage="features",
+                                                              count=len(seqs)))
         result = {"seqs": seqs, "eos": None if eos is None else {"seq": eos.seq, "count": eos.count},
                   "inbox_dropped": inbox.dropped, "bad_payloads": bus.stats.total}
     with open(args.out, "w") as f:
