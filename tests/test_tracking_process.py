@@ -4,6 +4,7 @@ reference and the frame in hand still gets its pose."""
 from __future__ import annotations
 
 import os
+import time
 import signal
 
 import numpy as np
@@ -125,3 +126,31 @@ def test_a_process_started_ahead_is_taken_by_the_first_stream_with_the_same_sett
     finally:
         same.close()
         tracking_process._Spare.starting = tracking_process._Spare.ready = None
+
+
+def test_frames_that_come_while_the_tracking_process_starts_are_held_and_all_posed(world, unix_endpoint):
+    """A stream's first frames arrive while its tracking process imports torch (no process started ahead): the
+    real-time inbox holds them rather than drop them (a frame before the map that is dropped gets no pose at all),
+    and once tracking caught up the inbox is back at its real-time bound."""
+    from services.ba.tracking import TrackingLoop
+    from services.common import keys
+    from services.common.bus import Bus, Delivery, Inbox
+    from services.common.config import BusSettings
+    from services.common.schema import FrameLite
+
+    frames = range(12)
+    with Bus(BusSettings(listen=[unix_endpoint]), "ba", "test") as bus:
+        inbox = Inbox(3, droppable=(FrameLite,))
+        loop = TrackingLoop(TrackerProcess(BaSettings().tracker_factory()), bus, inbox, "cam1", {})
+        loop.start()
+        for i in frames:
+            f = world.render(i)
+            lite = FrameLite("cam1", i, f.t_ns, image=_grey(f.rgb, half=True),
+                             intrinsics=np.asarray(f.intrinsics, np.float64) / 2, realtime=True)
+            inbox.put(Delivery(keys.topic("cam1", keys.FRAME_LITE), lite))
+        deadline = time.monotonic() + 60
+        while loop.tracked < len(frames) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        loop.stop()
+    assert inbox.dropped == 0 and loop.tracked == len(frames)  # each one a provisional pose before the map
+    assert loop.in_process and inbox.maxsize == 3

@@ -25,6 +25,7 @@ from services.ba.tracking_process import LocalTracker, TrackerProcess
 
 log = logging.getLogger(__name__)
 POLL_S = 0.05
+STARTUP_BACKLOG = 512  # frames held, not dropped, while the tracker starts (a spawned process: seconds)
 
 
 class TrackingLoop:
@@ -44,6 +45,7 @@ class TrackingLoop:
         self.anchors = anchors
         self._skipped: deque[FrameLite | Keyframe] = deque()  # frames the inbox dropped: predicted poses only
         inbox.on_drop = lambda delivery: self._skipped.append(delivery.msg)
+        self._bound: int | None = None  # the inbox's real-time bound while the start's backlog drains
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"stream-{stream}/tracking", daemon=True)
 
@@ -58,14 +60,21 @@ class TrackingLoop:
 
     def _start_tracker(self) -> None:
         """On the tracking thread, so mapping's loop (its progress reports, a resumed stream's catch-up) never
-        waits for it: a tracking process that was not started ahead (``prewarm``) takes seconds to import torch,
-        and frames meanwhile queue in the inbox (a real-time stream's stale ones are dropped and counted)."""
+        waits for it: a tracking process that was not started ahead (``prewarm``), or one that comes up slowly on
+        a loaded CPU, takes seconds to import torch. Frames meanwhile queue in the inbox beyond its real-time bound:
+        dropped, a frame before the map would get no pose at all (there is nothing to predict from), and tracking
+        catches up in a fraction of the wait (a frame before the map costs a few milliseconds)."""
+        self._bound, self.inbox.maxsize = self.inbox.maxsize, max(self.inbox.maxsize, STARTUP_BACKLOG)
+        began = time.monotonic()
         try:
             self.tracker.start()
         except RuntimeError as exc:  # tracking on a thread of ba is slower, not wrong
             log.error("tracking process did not start; tracking on a thread of ba instead",
                       extra={"stream": self.stream, "error": str(exc)})
             self.tracker = LocalTracker(self.tracker.make_tracker)
+        log.info("tracking started", extra={"stream": self.stream, "in_process": self.in_process,
+                                            "seconds": round(time.monotonic() - began, 2),
+                                            "queued": self.inbox.qsize()})
 
     def stop(self) -> None:
         self._stop.set()
@@ -87,6 +96,8 @@ class TrackingLoop:
         self._start_tracker()
         while not self._stop.is_set():
             delivery = self.inbox.get(POLL_S)
+            if self._bound is not None and self.inbox.qsize() <= self._bound:  # caught up after the start
+                self.inbox.maxsize, self._bound = self._bound, None
             try:
                 self._take_news()
                 while self._skipped:  # frames tracking had no time for still get a pose now, by prediction
