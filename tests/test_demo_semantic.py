@@ -37,6 +37,7 @@ def demo(tmp_path_factory):
         yield url, work / "out"
 
 
+@pytest.mark.slow
 def test_demo_answers_chair_with_regions_labelled_oracle(demo):
     url, out = demo
     summary = json.loads((out / "summary.json").read_text())
@@ -66,6 +67,7 @@ def gt_labels(out: Path, xyz: np.ndarray, stride_frames: int = 3) -> np.ndarray:
     return np.where(match.matched, gt.label[match.index], -1)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not (CHROMIUM and DRIVER), reason="chromium and chromedriver are not installed")
 def test_viewer_search_box_highlights_the_chairs(demo):
     webdriver = pytest.importorskip("selenium.webdriver")

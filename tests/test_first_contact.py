@@ -110,6 +110,7 @@ def test_services_import_the_runners_package_from_any_directory(tmp_path, monkey
     assert "invalid settings" in log or "cannot open the Zenoh session" in log, log  # the real package's errors
 
 
+@pytest.mark.slow
 def test_a_run_from_any_directory_reads_and_writes_there_only(tmp_path):
     """`kmvipe run frames --out out` in a user's folder: relative source and output, nothing written elsewhere."""
     work = tmp_path / "work"
@@ -192,6 +193,7 @@ def test_services_stop_when_the_runner_is_killed(tmp_path):
                poll=0.2)
 
 
+@pytest.mark.slow
 def test_serve_writes_the_outputs_at_end_of_stream(tmp_path):
     out = tmp_path / "out"
     port = kids.free_tcp_endpoint().rsplit(":", 1)[1]

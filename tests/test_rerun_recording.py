@@ -194,6 +194,7 @@ def recorded_run(tmp_path_factory):
     return tmp_path, summary, recorded, read_rrd(received)
 
 
+@pytest.mark.slow
 def test_every_posed_frame_has_its_final_pose_and_frustum(recorded_run):
     tmp_path, summary, rec, _ = recorded_run
     assert summary["frames"] == 20 and summary["posed_frames"] == 20, summary
@@ -211,6 +212,7 @@ def test_every_posed_frame_has_its_final_pose_and_frustum(recorded_run):
     assert k[0, 0] > 0 and k[1, 1] > 0 and 0 < k[0, 2] < 256 and 0 < k[1, 2] < 192
 
 
+@pytest.mark.slow
 def test_every_nth_frame_is_the_source_image(recorded_run):
     _, summary, rec, _ = recorded_run
     every = summary["settings"]["run"]["rerun"]["image_every"]
@@ -225,6 +227,7 @@ def test_every_nth_frame_is_the_source_image(recorded_run):
         assert error.argmin() == seq and error[seq] < 8.0, error  # its own frame, JPEG's loss only (measured 5.4)
 
 
+@pytest.mark.slow
 def test_the_trajectory_keyframes_and_map_are_the_runs(recorded_run):
     tmp_path, summary, rec, _ = recorded_run
     tum = np.loadtxt(tmp_path / "out" / "trajectory.txt")
@@ -243,6 +246,7 @@ def test_the_trajectory_keyframes_and_map_are_the_runs(recorded_run):
     assert np.allclose(final_map[np.lexsort(final_map.T)], durable[np.lexsort(durable.T)], atol=1e-5)
 
 
+@pytest.mark.slow
 def test_the_gateways_answer_is_highlighted(recorded_run):
     _, summary, rec, _ = recorded_run
     path = rl.query_path("chair")
@@ -253,6 +257,7 @@ def test_the_gateways_answer_is_highlighted(recorded_run):
     assert len(having(rec[path + "/points"], "Points3D:positions")[-1]["Points3D:positions"]) > 0
 
 
+@pytest.mark.slow
 def test_the_live_viewer_received_the_same_recording(recorded_run):
     _, _, rec, received = recorded_run
     assert _rows_of(received) == _rows_of(rec)

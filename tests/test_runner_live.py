@@ -116,6 +116,7 @@ def test_a_real_run_reports_posed_fraction_latency_drops_and_resources(tmp_path,
         assert line in stdout
 
 
+@pytest.mark.slow
 def test_a_service_s_own_child_processes_count_in_its_cpu_and_memory():
     """ba starts a tracking process of its own: the summary's CPU and RSS of a service include its children."""
     import subprocess

@@ -60,6 +60,7 @@ def test_missing_models_end_the_run_in_seconds_with_the_pull_commands(tmp_path):
     assert not (tmp_path / "out").exists(), "nothing may start before the models are there"
 
 
+@pytest.mark.slow
 def test_a_plain_run_says_which_queries_its_map_supports(tmp_path):
     done = subprocess.run([str(KMVIPE), "run", "synth:frames=12,width=256,height=192", "--out", "out",
                            "--skip", "query_api"], cwd=tmp_path,
@@ -73,6 +74,7 @@ def test_a_plain_run_says_which_queries_its_map_supports(tmp_path):
     assert queries["text"] is False and queries["example"] is True and queries["text_why"] in first
 
 
+@pytest.mark.slow
 def test_tiny_stand_ins_answer_a_text_query_end_to_end(tmp_path):
     models = tmp_path / "models"
     for name in PROFILE_MODELS:
