@@ -14,8 +14,9 @@ from services.common.errors import SourceError
 from services.ingest.config import IngestSettings
 from services.ingest.sources import SourceFrame, depth_units, open_source
 from services.runner.pipeline import RunSettings, _service_env
+from tests.conftest import DATA_DIR
 
-ADT = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "adt_sample"
+ADT = DATA_DIR / "adt_sample"
 
 
 def _tum_folder(root: Path, metres=(1.0, 2.0)) -> Path:
@@ -52,7 +53,7 @@ def test_tum_depth_in_metres_with_the_flag(tmp_path):
         open_source(str(folder), use_depth=True, depth_scale=0.0)
 
 
-@pytest.mark.skipif(not ADT.is_dir(), reason="needs ../shared/data/adt_sample")
+@pytest.mark.skipif(not ADT.is_dir(), reason=f"needs {ADT} (set KMVIPE_DATA_DIR)")
 def test_adt_sample_depth_in_metres():
     assert depth_units(ADT) == 1000.0  # uint16 millimetres (its README)
     assert all(f.depth is None for f in open_source(str(ADT)).frames())
