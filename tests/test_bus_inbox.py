@@ -63,3 +63,16 @@ def test_the_inbox_tells_of_every_frame_it_drops():
     for seq in range(5):
         box.put(_lite(seq))
     assert told == [0, 1, 2] and _drain(box) == [3, 4]
+
+
+def test_a_widened_inbox_holds_until_it_drains_back_to_its_bound():
+    box = Inbox(3, droppable=(FrameLite,))
+    box.widen(10)  # its consumer is starting: what comes is early, not stale
+    for seq in range(8):
+        box.put(_lite(seq))
+    assert box.dropped == 0 and box.qsize() == 8
+    assert [box.get(0).msg.seq for _ in range(5)] == [0, 1, 2, 3, 4]  # the consumer catches up
+    assert box.bound == 3
+    for seq in range(8, 10):
+        box.put(_lite(seq))
+    assert _drain(box) == [7, 8, 9] and box.dropped_by_kind == {"frame_lite": 2}  # the real-time policy again

@@ -153,4 +153,4 @@ def test_frames_that_come_while_the_tracking_process_starts_are_held_and_all_pos
             time.sleep(0.05)
         loop.stop()
     assert inbox.dropped == 0 and loop.tracked == len(frames)  # each one a provisional pose before the map
-    assert loop.in_process and inbox.maxsize == 3
+    assert loop.in_process and inbox.maxsize == 3 and inbox.bound == 3  # back at its real-time bound

@@ -45,7 +45,6 @@ class TrackingLoop:
         self.anchors = anchors
         self._skipped: deque[FrameLite | Keyframe] = deque()  # frames the inbox dropped: predicted poses only
         inbox.on_drop = lambda delivery: self._skipped.append(delivery.msg)
-        self._bound: int | None = None  # the inbox's real-time bound while the start's backlog drains
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"stream-{stream}/tracking", daemon=True)
 
@@ -63,8 +62,9 @@ class TrackingLoop:
         waits for it: a tracking process that was not started ahead (``prewarm``), or one that comes up slowly on
         a loaded CPU, takes seconds to import torch. Frames meanwhile queue in the inbox beyond its real-time bound:
         dropped, a frame before the map would get no pose at all (there is nothing to predict from), and tracking
-        catches up in a fraction of the wait (a frame before the map costs a few milliseconds)."""
-        self._bound, self.inbox.maxsize = self.inbox.maxsize, max(self.inbox.maxsize, STARTUP_BACKLOG)
+        catches up in a fraction of the wait (a frame before the map costs a few milliseconds). The inbox returns
+        to its bound once tracking has caught up (:meth:`Inbox.widen`)."""
+        self.inbox.widen(STARTUP_BACKLOG)
         began = time.monotonic()
         try:
             self.tracker.start()
@@ -96,8 +96,6 @@ class TrackingLoop:
         self._start_tracker()
         while not self._stop.is_set():
             delivery = self.inbox.get(POLL_S)
-            if self._bound is not None and self.inbox.qsize() <= self._bound:  # caught up after the start
-                self.inbox.maxsize, self._bound = self._bound, None
             try:
                 self._take_news()
                 while self._skipped:  # frames tracking had no time for still get a pose now, by prediction

@@ -119,6 +119,7 @@ class Inbox:
         self._ready = threading.Condition()
         self.dropped_by_kind: Counter[str] = Counter()
         self.overflowed = 0
+        self._widened = 0  # a bound above maxsize until the queue drains back to maxsize (:meth:`widen`)
         self.last_key: str | None = None  # the stream its depth is reported under (metrics)
         metrics.INBOXES.track(self)
 
@@ -126,10 +127,21 @@ class Inbox:
     def dropped(self) -> int:
         return sum(self.dropped_by_kind.values())
 
+    @property
+    def bound(self) -> int:
+        """How many messages it holds before the drop policy applies now."""
+        return max(self.maxsize, self._widened)
+
+    def widen(self, maxsize: int) -> None:
+        """Hold up to ``maxsize`` until the queue next drains to its own bound: its consumer is not up yet, and what
+        comes meanwhile is early, not stale."""
+        with self._ready:
+            self._widened = maxsize
+
     def put(self, item: Delivery) -> None:
         with self._ready:
             self.last_key = item.key
-            if len(self._items) >= self.maxsize:
+            if len(self._items) >= self.bound:
                 victim = self._make_room(item)
                 if victim is item:
                     return
@@ -164,7 +176,10 @@ class Inbox:
         with self._ready:
             if not self._items and not self._ready.wait_for(lambda: bool(self._items), timeout):
                 return None
-            return self._items.popleft()
+            item = self._items.popleft()
+            if len(self._items) <= self.maxsize:  # drained back to its own bound: a widening ends
+                self._widened = 0
+            return item
 
     def qsize(self) -> int:
         with self._ready:
