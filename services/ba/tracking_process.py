@@ -26,6 +26,7 @@ import torch
 from services.ba.core import se3
 from services.ba.core.flow import to_grey
 from services.ba.frontend.tracker import Reference, Tracker
+from services.common.camera import scale_intrinsics
 
 log = logging.getLogger(__name__)
 
@@ -62,9 +63,8 @@ def half_size(grey: np.ndarray, intrinsics: np.ndarray) -> tuple[np.ndarray, np.
     """A working-resolution grey image and its (4,) intrinsics at half size (the resize rule of
     docs/CONVENTIONS.md)."""
     h, w = grey.shape[:2]
-    fx, fy, cx, cy = (float(v) for v in intrinsics)
     small = cv2.resize(grey, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
-    return small, np.array([fx / 2, fy / 2, (cx + 0.5) / 2 - 0.5, (cy + 0.5) / 2 - 0.5])
+    return small, scale_intrinsics(intrinsics, 0.5, 0.5)
 
 
 def predict(tracker: Tracker, t_ns: int) -> np.ndarray | None:

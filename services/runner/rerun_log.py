@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from ..common import camera
 from ..common.errors import ConfigError
 from ..common.schema import Frame
 
@@ -121,8 +122,7 @@ def scale_intrinsics(k: np.ndarray, from_size: tuple[int, int], to_size: tuple[i
     """(4,) ``fx, fy, cx, cy`` of an image of ``from_size`` (W, H) for the same view at ``to_size``
     (docs/CONVENTIONS.md: ``fx' = s·fx``, ``cx' = s·(cx + 0.5) − 0.5``)."""
     s = np.array(to_size, np.float64) / np.array(from_size, np.float64)
-    k = np.asarray(k, np.float64)
-    return np.array([s[0] * k[0], s[1] * k[1], s[0] * (k[2] + 0.5) - 0.5, s[1] * (k[3] + 0.5) - 0.5])
+    return camera.scale_intrinsics(k, s[0], s[1])
 
 
 def pinhole(k: np.ndarray, size: tuple[int, int]) -> Entity:

@@ -13,6 +13,7 @@ from services.ba.core import flow as core_flow
 from services.ba.core.ba import BAProblem, BAResult, BAState, run_ba
 from services.ba.core.params import BAParams, FlowParams
 from services.ba.frontend.edges import induced_flow_field, temporal_pairs
+from services.common.camera import scale_intrinsics
 
 logger = logging.getLogger(__name__)
 GRID = 8  # working pixels per grid cell (docs/CONVENTIONS.md)
@@ -21,14 +22,12 @@ STILL_STEP = 0.01  # keyframe steps below this x the scene's median depth are ne
 
 def grid_intrinsics(work: np.ndarray) -> torch.Tensor:
     """Working-resolution (fx, fy, cx, cy) -> 1/8-grid intrinsics ``(4,)`` float64 (resize rule, s = 1/8)."""
-    fx, fy, cx, cy = map(float, work)
-    return torch.tensor([fx / GRID, fy / GRID, (cx + 0.5) / GRID - 0.5, (cy + 0.5) / GRID - 0.5], dtype=torch.float64)
+    return torch.from_numpy(scale_intrinsics(work, 1 / GRID, 1 / GRID))
 
 
 def working_intrinsics(grid: torch.Tensor) -> np.ndarray:
     """1/8-grid intrinsics ``(4,)`` -> working-resolution (fx, fy, cx, cy) float64."""
-    fx, fy, cx, cy = map(float, grid)
-    return np.array([fx * GRID, fy * GRID, (cx + 0.5) * GRID - 0.5, (cy + 0.5) * GRID - 0.5])
+    return scale_intrinsics(grid.detach().cpu().numpy(), GRID, GRID)
 
 
 class NativeCodes(NamedTuple):

@@ -12,6 +12,8 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
+from services.common.camera import scale_intrinsics
+
 GRID_STRIDE = 8
 
 
@@ -35,7 +37,7 @@ class Intrinsics(NamedTuple):
 
     def scaled(self, sx: float, sy: float) -> "Intrinsics":
         """Intrinsics of this image resized by (sx, sy) (new = old · s)."""
-        return Intrinsics(sx * self.fx, sy * self.fy, sx * (self.cx + 0.5) - 0.5, sy * (self.cy + 0.5) - 0.5)
+        return Intrinsics(*(float(v) for v in scale_intrinsics(self.as_array(), sx, sy)))
 
     def to_grid(self) -> "Intrinsics":
         """Intrinsics of the 1/8 grid of this (working) image."""

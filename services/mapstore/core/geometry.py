@@ -10,6 +10,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from services.common.camera import scale_intrinsics
+
 GRID_STRIDE = 8
 """Working-resolution pixels per grid cell side."""
 
@@ -38,9 +40,8 @@ def grid_intrinsics(intrinsics: np.ndarray, stride: int = GRID_STRIDE) -> np.nda
     Returns:
         (4,) float64 (fx/s, fy/s, (cx+0.5)/s − 0.5, (cy+0.5)/s − 0.5).
     """
-    fx, fy, cx, cy = _check_intrinsics(intrinsics)
-    s = float(stride)
-    return np.array([fx / s, fy / s, (cx + 0.5) / s - 0.5, (cy + 0.5) / s - 0.5])
+    _check_intrinsics(intrinsics)
+    return scale_intrinsics(intrinsics, 1 / stride, 1 / stride)
 
 
 def backproject_grid(disparity: np.ndarray, grid_k: np.ndarray) -> np.ndarray:
