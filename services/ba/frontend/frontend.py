@@ -1,8 +1,8 @@
 """The BA frontend: keyframes and frames in, graph state and every frame's pose out (no transport).
 
-Per keyframe: before the map exists, keyframes are collected until the first and newest have parallax, then
-a two-view start (essential matrix + triangulation) seeds poses and disparities and a BA refines them; keyframes
-whose flow a rotation explains (a camera turning on the spot) start a map of rotations instead. After
+Per keyframe: before the map exists, keyframes are collected until the first and newest have parallax, then a
+two-view start (essential matrix + triangulation) seeds poses and disparities and a BA refines them; keyframes
+whose flow a rotation explains (a camera turning on the spot) start a map of rotations instead (start.py). After
 that each new keyframe is aligned motion-only to the previous one, gets temporal and proximity edges, and a
 few BA iterations run over the sliding window (the oldest window pose is the gauge). A redundant second-newest
 keyframe is turned back into a frame. Frames are aligned motion-only to their two bracketing keyframes.
@@ -24,7 +24,7 @@ import torch
 
 from services.ba.core import flow as core_flow
 from services.ba.core import se3
-from services.ba.frontend import edges, init, motion, steps
+from services.ba.frontend import edges, init, motion, start, steps
 from services.ba.frontend.frames import FramePoses, FrameRecord
 from services.ba.frontend.graph import GRID, KeyframeGraph, NativeCodes, grid_intrinsics, working_intrinsics
 from services.ba.frontend.params import FrontendParams
@@ -91,7 +91,7 @@ class Frontend:
         self.metric = False
         self._focal = 0.0
         self._size = (0, 0)
-        self._calibrated = False  # the multi-start focal calibration ran (see _calibrate_focal)
+        self._calibrated = False  # the multi-start focal calibration ran (start.calibrate_focal)
         self._live = False  # the newest keyframe came from a real-time stream
         self._deferred = 0  # keyframes in a row whose window BA was left to a later keyframe
         self._since_global = 0  # keyframes joined since the last BA over every held keyframe (refine_globally)
@@ -132,7 +132,8 @@ class Frontend:
             return self._defer(k)
         self._deferred = 0
         if calibrating:
-            self._calibrate_focal()
+            self._calibrated = True
+            start.calibrate_focal(g, self.frames, self.params, self._live)
         self._add_proximity(k)
         window = self._window()
         if g.run(window, g.pairs(window, self.params.graph.temporal_radius), self._ba_params(window)) is None:
@@ -213,7 +214,7 @@ class Frontend:
             self.frames.add(record)
             return Update()
         self.frames.add(record)
-        if not self.initialised and self._static_for_long():
+        if not self.initialised and start.static_for_long(self.graph, self.frames, self.params.init):
             self._force_initialise()  # a camera that has not moved for this long: a static map, now
         waiting = [s for s, f in self.frames.frames.items() if f.anchor is None]
         if self.initialised and len(waiting) > self.params.init.max_pending_frames:
@@ -414,18 +415,15 @@ class Frontend:
                  and len(self.graph) <= self.params.focal_until)
         return dataclasses.replace(base, optimise_focal=focal)
 
-    # --- initialisation ------------------------------------------------------------------------------
+    # --- initialisation (services/ba/frontend/start.py) ----------------------------------------------------
     def _try_initialise(self, force: bool = False) -> Update:
         p = self.params
-        if not force and init.turning(self.graph, p.init):
-            # a map of rotations; depth comes with the first translation. No focal restarts: they start the map
-            # again from two views, and two views of a turn have no depth to start from
-            init.start_static(self.graph)
-            self._calibrated = True
-        elif init.start_map(self.graph, p.init, self._ba_params(list(range(len(self.graph)))), p.motion,
-                            force) is None:
-            self._slide_init_window()
+        started = start.try_start(self.graph, self.frames, p, self._ba_params(list(range(len(self.graph)))), force)
+        if started is None:
             return Update()
+        if started == start.TURNING:
+            self._calibrated = True  # no focal restarts: they start the map again from two views, and two views of
+            # a turn have no depth to start from
         self.initialised = True
         self.graph.predict_flow = p.predict_flow
         self.metric = p.ba.alpha_disp > 0 and any(pr is not None for pr in self.graph.priors)
@@ -433,47 +431,10 @@ class Frontend:
         self._retire()
         return update
 
-    def _calibrate_focal(self) -> None:
-        """Once, at ``focal_after`` keyframes: the multi-start focal calibration (:func:`init.calibrate_focal`);
-        when a restart won, the map has a new scale and focal and every frame is aligned again."""
-        p = self.params
-        self._calibrated = True
-        ba = dataclasses.replace(p.ba, optimise_focal=True, iterations=p.init.iterations)
-        restarts = p.live_focal_restarts if self._live else p.focal_restarts
-        only_undetermined = self._live and p.live_calibration == "when_undetermined"
-        if init.calibrate_focal(self.graph, p.init, ba, p.motion, restarts, only_undetermined) is not None \
-                and not self._live:
-            # the restarted map is in the scale of the old one (init._keep_scale), so a live stream's frames keep
-            # their anchors: their poses went out when tracked, and aligning them all again would stall mapping
-            self.frames.unanchor()
-
-    def _slide_init_window(self) -> None:
-        """A two-view start that fails although the first and newest keyframe have parallax will not succeed
-        with a still longer baseline (fast motion: the flow between them breaks). Past ``max_keyframes``, the
-        oldest keyframe is turned back into a frame, so the next attempt uses a closer pair."""
-        g, p = self.graph, self.params.init
-        if len(g) <= p.max_keyframes or not self._has_parallax():
-            return  # no parallax yet: waiting is right, the keyframes stay
-        seq = g.seqs[0]
-        logger.info("two-view start failed with parallax; oldest keyframe turned into a frame", extra={"seq": seq})
-        self.frames.add(FrameRecord(seq, g.stamps[0], g.images[0]))
-        g.remove(0)
-
-    def _static_for_long(self) -> bool:
-        """More than ``max_pending_frames`` frames wait for a map and the keyframes have no parallax: a fixed
-        camera. Waiting for the end of stream would hold every frame (memory) and leave them all without a pose."""
-        g = self.graph
-        return (g is not None and len(self.frames.frames) > self.params.init.max_pending_frames
-                and (len(g) < 2 or not self._has_parallax()))
-
-    def _has_parallax(self) -> bool:
-        """The first and newest keyframe have flow enough for a two-view start."""
-        return init.parallax(self.graph) >= self.params.init.min_flow
-
     def _force_initialise(self) -> bool:
         """Start the map with what there is at end of stream; True when there was no parallax at all."""
         g = self.graph
-        if len(g) > 1 and not self._has_parallax():
+        if len(g) > 1 and not start.has_parallax(g, self.params.init):
             init.start_static(g)
             self.initialised = True
             return True

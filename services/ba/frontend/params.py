@@ -73,7 +73,7 @@ class FrontendParams:
     # long: tracking's cheap flow leaves them ~2 cm off on the synthetic world where keyframes are at 3 mm
     flow: FlowParams = field(default_factory=FlowParams)
     focal_restarts: tuple[float, ...] = (0.7, 1.0, 1.4)  # at focal_after keyframes the map starts again from
-    # these x the focal guess, focal free; the lowest BA cost is kept (Frontend._calibrate_focal)
+    # these x the focal guess, focal free; the lowest BA cost is kept (start.calibrate_focal)
     live_focal_restarts: tuple[float, ...] = (0.7, 1.4)  # a live stream's calibration skips the restart from the
     # guess itself (the map as it is started there): mapping stalls for it, ~1 s per restart on this CPU
     focal_after: int = 6  # the focal length is refined once the window holds this many keyframes
