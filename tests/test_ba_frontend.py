@@ -336,3 +336,33 @@ def test_a_keyframe_after_frames_merged_away_is_judged_by_speed_not_step_length(
     assert not steps.plausible(g, flown, k, 4.0)
     predicted = steps.bounded_prediction(g, k)
     assert float(predicted[2, 3]) == pytest.approx(5.0 + gap, rel=1e-6)
+
+
+def test_a_walk_after_a_turn_on_the_spot_is_judged_by_the_speed_before_the_turn():
+    """Keyframes walk 1 cm per frame, then six turn on the spot: the recent steps are all still and their median
+    speed 0, which refused every step of the walk that followed (pure_rotation lost its last 40 cm to zero-speed
+    predictions). The walk's speed comes back at the held keyframes' mean speed and is plausible; a step far
+    faster than anything before is not. A map that never moved has no speed to judge its first translation by."""
+    fe = Frontend()
+    fe.add_keyframe(KeyframeInput(0, 0, np.zeros((64, 96, 3), np.uint8), np.array([80.0, 80.0, 47.5, 31.5])))
+    g = fe.graph
+    frame = 33_000_000  # 30 Hz
+    depth = torch.full((8, 12), 0.5, dtype=torch.float64)  # 2 m away
+    stamps = [4, 8, 12, 16, 20, 24, 28, 32, 36]  # keyframes 1-3 walk, 4-9 turn where keyframe 3 stopped
+    for n, f in enumerate(stamps, start=1):
+        pose = torch.eye(4, dtype=torch.float64)
+        pose[0, 3] = 0.01 * min(f, 12)
+        g.append(f, f * frame, np.zeros((64, 96), np.uint8), None, None, pose, depth.clone())
+    k = len(g)
+    resumed = torch.eye(4, dtype=torch.float64)
+    resumed[0, 3] = 0.12 + 0.01 * 8  # walking again at 1 cm per frame, 8 frames after the last turn keyframe
+    g.append(44, 44 * frame, np.zeros((64, 96), np.uint8), None, None, resumed, depth.clone())
+    assert steps.recent_speed(g, k) == 0.0
+    assert steps.plausible(g, resumed, k, 4.0)
+    flown = resumed.clone()
+    flown[0, 3] = 0.12 + 0.5  # 50 cm in 8 frames: 6x the walk
+    assert not steps.plausible(g, flown, k, 4.0)
+
+    for i in range(1, len(g)):  # the same keyframes all on the spot: a first translation sets the scale
+        g.poses[i] = torch.eye(4, dtype=torch.float64)
+    assert steps.never_moved(g, k) and steps.plausible(g, flown, k, 4.0)

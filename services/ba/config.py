@@ -46,6 +46,9 @@ class BASettings(KmVipeSettings):
     """``angular``: r = 1 - cs; ``chordal``: r = sqrt(2 (1 - cs))."""
     alpha_disp: float = 0.05
     """Weight of the disparity prior where the features service sends a depth prior."""
+    disp_rel_damping: float = BAParams.disp_rel_damping
+    """LM damping of each disparity's relative change (grid px^2): holds the depth of pixels no flow constrains,
+    such as a keyframe that only turned (``BAParams.disp_rel_damping``; 0 disables it)."""
     use_ark: bool = True
     """Adaptive robust kernel from code similarity; false = fixed ``fixed_alpha`` everywhere."""
     fixed_alpha: float = 2.0
@@ -81,6 +84,7 @@ class BASettings(KmVipeSettings):
         return BAParams(iterations=self.global_iterations if global_ba else self.iterations,
                         rel_tol=self.global_rel_tol if global_ba else BAParams.rel_tol,
                         lambda_embed=self.lambda_embed, embed_form=self.embed_form, alpha_disp=self.alpha_disp,
+                        disp_rel_damping=self.disp_rel_damping,
                         optimise_focal=self.optimise_focal, robust=self.robust_params(),
                         compute_dtype=self.compute_dtype)
 

@@ -256,6 +256,8 @@ def run_ba(state: BAState, problem: BAProblem, params: BAParams,
     costs = [_energy(res, params, frozen) + prior_cost]
     for it in range(params.iterations):
         prior_h, prior_g, _ = _prior_terms(state, problem, params)
+        if params.disp_rel_damping > 0:  # damping, not energy: it slows what no flow constrains (BAParams)
+            prior_h = prior_h + params.disp_rel_damping / state.disparity.reshape(n, -1).to(prior_h.dtype) ** 2
         step = schur.solve(_normal_equations(res, params, frozen), prep.ii, prep.jj, n, free, lm,
                            params.pose_eps, params.disp_eps, prior_h, prior_g)
         trial = _apply(state, step, params, problem.focal_bounds)

@@ -58,6 +58,10 @@ class BAParams:
     rel_tol: float = 1e-12  # stop when an accepted step lowers the energy by less than this times the start energy
     pose_eps: float = 1e-9  # absolute damping on pose/focal diagonal (keeps S positive definite)
     disp_eps: float = 1e-6  # absolute damping on disparity diagonal (pixels seen by no edge)
+    disp_rel_damping: float = 0.01  # damping of each disparity's relative change, mu (dd / d)^2 on its diagonal, in
+    # grid px^2: a pixel's own information is sum w (parallax)^2, so only pixels with under ~0.1 grid px of parallax
+    # are held; without it a keyframe that only turned (no baseline) has disparities no flow constrains, BA lets
+    # them fly (pure_rotation: median 0.03 -> 50) and the walk after the turn is then explained by depth
     min_disparity: float = 1e-4  # disparities are clamped to at least this after each update
     compute_dtype: str = "float32"  # per-pixel residuals and Jacobians: "float32" (fast) or "float64" (exact
     # to 1e-12, for tests); poses, the camera system and its Cholesky solve are float64 either way

@@ -7,7 +7,7 @@ from __future__ import annotations
 import torch
 
 from services.ba.core import se3
-from services.ba.frontend.graph import KeyframeGraph
+from services.ba.frontend.graph import STILL_STEP, KeyframeGraph
 from services.ba.frontend.tracker import MAX_EXTRAPOLATION
 
 
@@ -19,6 +19,27 @@ def recent_speed(graph: KeyframeGraph, k: int) -> float:
     return float(((centres[1:] - centres[:-1]).norm(dim=-1) / dt).median())
 
 
+def held_path(graph: KeyframeGraph, k: int) -> tuple[float, float]:
+    """Path length and nanoseconds from the oldest held keyframe to keyframe ``k - 1``."""
+    centres = torch.stack([graph.poses[i][:3, 3] for i in range(k)])
+    return float((centres[1:] - centres[:-1]).norm(dim=-1).sum()), float(max(1, graph.stamps[k - 1] - graph.stamps[0]))
+
+
+def reference_speed(graph: KeyframeGraph, k: int) -> float:
+    """The speed keyframe ``k``'s step is judged by: the recent median (:func:`recent_speed`), or the held keyframes'
+    mean speed (path / time) where that is higher. After a turn on the spot the recent steps are all still, their
+    median is 0, and every step of the walk that followed was refused (pure_rotation: its last 40 cm missing)."""
+    path, span = held_path(graph, k)
+    return max(recent_speed(graph, k), path / span)
+
+
+def never_moved(graph: KeyframeGraph, k: int) -> bool:
+    """The held keyframes before ``k`` span less than a hundredth of the scene's depth (a map started on the
+    spot, turning): there is no speed to judge a first translation by, and it sets the map's scale."""
+    depth = 1.0 / float(graph.disparity[k - 1].median().clamp_min(1e-12))
+    return held_path(graph, k)[0] < STILL_STEP * depth
+
+
 def gap(graph: KeyframeGraph, k: int) -> float:
     """Nanoseconds between keyframe ``k`` and the one before."""
     return float(max(1, graph.stamps[k] - graph.stamps[k - 1]))
@@ -28,11 +49,12 @@ def plausible(graph: KeyframeGraph, pose: torch.Tensor, k: int, max_growth: floa
     """Motion-only alignment of a keyframe whose flow barely constrains it (near objects lost by DIS, a forward
     motion along the depth ambiguity) can slide far along its free direction; kept, that step would be repeated by
     every later constant-velocity prediction. ``pose`` (world_from_cam of keyframe ``k``) must keep its speed from
-    keyframe ``k - 1`` within ``max_growth`` times the median of the previous steps'."""
-    if k < 3:
+    keyframe ``k - 1`` within ``max_growth`` times :func:`reference_speed`; any step is plausible after a map that never
+    moved (:func:`never_moved`)."""
+    if k < 3 or never_moved(graph, k):
         return True
     step = float((pose[:3, 3] - graph.poses[k - 1][:3, 3]).norm())
-    return step <= max_growth * recent_speed(graph, k) * gap(graph, k)
+    return step <= max_growth * reference_speed(graph, k) * gap(graph, k)
 
 
 def bounded_prediction(graph: KeyframeGraph, k: int) -> torch.Tensor:
@@ -41,7 +63,7 @@ def bounded_prediction(graph: KeyframeGraph, k: int) -> torch.Tensor:
     span = float(max(1, graph.stamps[k - 1] - graph.stamps[k - 2]))
     twist = se3.log(se3.inverse(graph.poses[k - 2]) @ graph.poses[k - 1])
     rel = se3.exp(min(gap(graph, k) / span, MAX_EXTRAPOLATION) * twist)
-    length, allowed = float(rel[:3, 3].norm()), recent_speed(graph, k) * gap(graph, k)
+    length, allowed = float(rel[:3, 3].norm()), reference_speed(graph, k) * gap(graph, k)
     if length > allowed > 0:
         rel = rel.clone()
         rel[:3, 3] *= allowed / length
