@@ -2,7 +2,6 @@
 reference map queryable, and a gateway wired to it."""
 from __future__ import annotations
 
-import socket
 import time
 from dataclasses import dataclass
 
@@ -12,6 +11,7 @@ from services.common.bus import Bus
 from services.common.config import BusSettings
 from services.query_api.config import QuerySettings
 from services.query_api.refmap import RefMap, RefMapParams
+from services.runner.children import free_tcp_endpoint
 from services.synth import LABEL_NAMES, label_vectors
 
 STREAM = "cam0"
@@ -21,9 +21,8 @@ SEED = 3
 
 
 def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    """A free loopback port not handed out before (services.runner.children.free_tcp_endpoint)."""
+    return int(free_tcp_endpoint().rsplit(":", 1)[1])
 
 
 def bus_pair(listener: str = "map", other: str = "query_api") -> tuple[Bus, Bus]:

@@ -41,12 +41,22 @@ def last_connected_stage(built: list[str]) -> str:
     return last
 
 
+_HANDED_OUT: set[int] = set()  # ports free_tcp_endpoint returned: a port is only taken once its process binds it
+
+
 def free_tcp_endpoint() -> str:
+    """A loopback TCP endpoint on a port free now and not handed out before by this process. The kernel can give
+    the same free port to two bind-and-release probes in a row, and two children told one port collide (a
+    deployment test's gateway and its metrics endpoint were both given 60363)."""
     import socket
 
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{sock.getsockname()[1]}"
+    while True:
+        with socket.socket() as sock:
+            sock.bind(("127.0.0.1", 0))
+            port = sock.getsockname()[1]
+        if port not in _HANDED_OUT:
+            _HANDED_OUT.add(port)
+            return f"tcp/127.0.0.1:{port}"
 
 
 @dataclass
