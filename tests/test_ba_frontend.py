@@ -13,7 +13,7 @@ from services.ba.frontend import edges, init, motion, steps
 from services.ba.frontend.frames import interpolate
 from services.ba.frontend.frontend import FrameInput, Frontend, KeyframeInput
 from services.ba.frontend.graph import grid_intrinsics, working_intrinsics
-from services.ba.frontend.params import GraphParams, InitParams, MotionParams
+from services.ba.frontend.params import FrontendParams, GraphParams, InitParams, MotionParams
 
 
 def _rot_deg(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -358,6 +358,8 @@ def test_a_walk_after_a_turn_on_the_spot_is_judged_by_the_speed_before_the_turn(
     resumed[0, 3] = 0.12 + 0.01 * 8  # walking again at 1 cm per frame, 8 frames after the last turn keyframe
     g.append(44, 44 * frame, np.zeros((64, 96), np.uint8), None, None, resumed, depth.clone())
     assert steps.recent_speed(g, k) == 0.0
+    assert steps.turned_on_the_spot(g, 5) and not steps.turned_on_the_spot(g, 1)  # mid-turn; walking
+    assert steps.still_between(g, k - 2, k - 1) and not steps.still_between(g, k - 1, k)  # out of the turn now
     assert steps.plausible(g, resumed, k, 4.0)
     flown = resumed.clone()
     flown[0, 3] = 0.12 + 0.5  # 50 cm in 8 frames: 6x the walk
@@ -366,3 +368,38 @@ def test_a_walk_after_a_turn_on_the_spot_is_judged_by_the_speed_before_the_turn(
     for i in range(1, len(g)):  # the same keyframes all on the spot: a first translation sets the scale
         g.poses[i] = torch.eye(4, dtype=torch.float64)
     assert steps.never_moved(g, k) and steps.plausible(g, flown, k, 4.0)
+
+
+def _walk_turn_walk(params: FrontendParams) -> tuple[Frontend, int]:
+    """A frontend whose graph walked three keyframes, turned 36 deg on the spot over six, and took one step out of
+    the turn (room depths, grid focal 28); returns it and the last keyframe's index."""
+    fe = Frontend(params)
+    fe.add_keyframe(KeyframeInput(0, 0, np.zeros((192, 256, 3), np.uint8), np.array([224.0, 224.0, 127.5, 95.5])))
+    g = fe.graph
+    poses = []
+    for k in range(10):
+        pose = torch.eye(4, dtype=torch.float64)
+        pose[0, 3] = 0.1 * min(k, 2) + (0.1 if k == 9 else 0.0)
+        pose[:3, :3] = se3.so3_exp(torch.tensor([0.0, math.radians(6.0 * min(max(k - 2, 0), 6)), 0.0],
+                                                dtype=torch.float64))
+        poses.append(pose)
+    disp = 1 / synthetic.room_depth(torch.stack(poses), g.intrinsics, *g.grid_hw)
+    g.poses[0], g.disparity[0] = poses[0], disp[0]
+    for k in range(1, 10):
+        g.append(k, k * 33_000_000, np.zeros((192, 256), np.uint8), None, None, poses[k], disp[k])
+    g.predict_flow = True
+    return fe, 9
+
+
+def test_the_first_keyframe_out_of_a_turn_on_the_spot_is_linked_to_the_turn():
+    """The keyframes of a turn on the spot have no baseline for their depth, and the walk after it keeps their
+    scale only through edges to them; their rotation puts them beyond the induced-flow limit of proximity edges,
+    but with the flow predicted (rotation included) what counts is the flow their depth causes (pure_rotation:
+    1.8 -> 0.8 % of path). Judged by their whole induced flow, only the nearest one (6 deg) gets an edge."""
+    fe, k = _walk_turn_walk(FrontendParams())
+    fe._add_proximity(k)
+    linked = {a for a, b in fe.graph.proximity if b == k}
+    plain, k = _walk_turn_walk(FrontendParams(graph=GraphParams(proximity_overlap=0.0)))
+    plain._add_proximity(k)
+    assert {a for a, b in plain.graph.proximity if b == k} == {6}
+    assert linked <= set(range(2, 7)) and min(linked) <= 4, linked  # at the turn's spot, 18 deg or more away

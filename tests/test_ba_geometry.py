@@ -6,7 +6,8 @@ import math
 import pytest
 import torch
 
-from services.ba.core import projective, se3
+from services.ba.core import projective, se3, synthetic
+from services.ba.frontend import edges
 
 torch_dtype = torch.float64
 
@@ -186,3 +187,27 @@ def test_repeated_constant_velocity_prediction_stays_rigid():
         kept.append(se3.orthonormalize(kept[-1] @ se3.inverse(kept[-2]) @ kept[-1]))
     assert abs(float(torch.det(raw[-1][:3, :3])) - 1) > 1e-3  # the failure this guards against is real
     assert abs(float(torch.det(kept[-1][:3, :3])) - 1) < 1e-12
+
+
+def test_flow_parts_take_the_rotation_out_and_measure_the_overlap():
+    """Two keyframes at one spot turned 30 deg apart have a large induced flow, all of it the rotation's and none
+    from depth; a sideways step moves pixels by its parallax alone, as the induced flow says; a turn of 80 deg in
+    a 60 deg view leaves no overlap."""
+    h, w, f = 24, 32, 28.0
+    intr = torch.tensor([f, f, (w - 1) / 2, (h - 1) / 2], dtype=torch.float64)
+
+    def pose(yaw_deg: float, x: float) -> torch.Tensor:
+        out = torch.eye(4, dtype=torch.float64)
+        out[:3, :3] = se3.so3_exp(torch.tensor([0.0, math.radians(yaw_deg), 0.0], dtype=torch.float64))
+        out[0, 3] = x
+        return out
+
+    poses = torch.stack([pose(0, 0), pose(30, 0), pose(0, 0.2), pose(80, 0)])
+    disp = 1 / synthetic.room_depth(poses, intr, h, w)
+    ii, jj = torch.tensor([0, 0, 0]), torch.tensor([1, 2, 3])
+    induced = edges.induced_flow(poses, disp, intr, ii, jj)
+    parts = edges.flow_parts(poses, disp, intr, ii, jj)
+    assert float(parts.parallax[0]) < 1e-6 and float(parts.rotation[0]) == pytest.approx(float(induced[0]), rel=1e-6)
+    assert float(induced[0]) > 10 and 0.4 < float(parts.overlap[0]) < 0.6  # half of the view turned away
+    assert float(parts.parallax[1]) == pytest.approx(float(induced[1]), rel=1e-6) and float(parts.parallax[1]) > 1
+    assert float(parts.rotation[1]) < 1e-9 and float(parts.overlap[2]) == 0.0

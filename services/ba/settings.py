@@ -53,6 +53,10 @@ class BaSettings(BASettings):
     """Mean grid flow (grid px) between the first and newest keyframe needed to start."""
     proximity_max_flow: float = GraphParams.proximity_max_flow
     """Proximity-edge candidates: induced flow below this (grid px)."""
+    proximity_overlap: float = GraphParams.proximity_overlap
+    """A proximity-edge candidate that turned on the spot and that only its rotation puts beyond
+    ``proximity_max_flow`` is judged by the flow its depth causes (the rotation is predicted) where at least this
+    share of its pixels land in the new keyframe; 0: always by the whole induced flow."""
     proximity_max_edges: int = GraphParams.proximity_max_edges
     """Proximity edges per new keyframe."""
     remove_max_flow: float = GraphParams.remove_max_flow
@@ -167,6 +171,7 @@ class BaSettings(BASettings):
         """The frozen parameters of :class:`services.ba.frontend.frontend.Frontend`."""
         graph = GraphParams(window=self.window, temporal_radius=self.temporal_radius,
                             proximity_max_flow=self.proximity_max_flow, proximity_max_edges=self.proximity_max_edges,
+                            proximity_overlap=self.proximity_overlap,
                             remove_max_flow=self.remove_max_flow, global_radius=self.global_radius)
         return FrontendParams(
             graph=graph, init=InitParams(min_keyframes=self.init_keyframes, min_flow=self.init_min_flow,

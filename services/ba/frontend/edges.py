@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import cv2
+from typing import NamedTuple
+
 import numpy as np
 import torch
 
@@ -28,6 +30,33 @@ def induced_flow(poses: torch.Tensor, disparity: torch.Tensor, intrinsics: torch
     valid = rp.valid.to(poses.dtype)
     dist = ((rp.coords - pixels).norm(dim=-1) * valid).sum(-1) / valid.sum(-1).clamp_min(1)
     return torch.where(valid.sum(-1) > 0, dist, torch.full_like(dist, float("inf")))
+
+
+class FlowParts(NamedTuple):
+    """The induced flow of keyframe pairs taken apart (grid px means over the pixels in front of the target)."""
+
+    parallax: torch.Tensor  # (E,) the flow the source's depth causes: reprojection minus the rotation's alone
+    rotation: torch.Tensor  # (E,) the flow the rotation alone causes (the points at infinity)
+    overlap: torch.Tensor  # (E,) share of the source's pixels that land inside the target image
+
+
+def flow_parts(poses: torch.Tensor, disparity: torch.Tensor, intrinsics: torch.Tensor, ii: torch.Tensor,
+               jj: torch.Tensor) -> FlowParts:
+    """:func:`induced_flow`'s pairs, their flow split into parallax and rotation (arguments as there)."""
+    n, h, w = disparity.shape
+    pixels = projective.pixel_grid(h, w, poses.dtype, poses.device)
+    disp = disparity.reshape(n, -1)[ii].to(poses.dtype)
+    at = projective.reproject(poses[ii], poses[jj], disp, pixels, intrinsics, with_jacobians=False)
+    far = projective.reproject(poses[ii], poses[jj], torch.zeros_like(disp), pixels, intrinsics,
+                               with_jacobians=False)
+    valid = (at.valid & far.valid).to(poses.dtype)
+    x, y = at.coords[..., 0], at.coords[..., 1]
+    inside = valid * ((x >= -0.5) & (x <= w - 0.5) & (y >= -0.5) & (y <= h - 0.5)).to(poses.dtype)
+
+    def mean(flow: torch.Tensor) -> torch.Tensor:
+        return torch.nan_to_num(flow.norm(dim=-1) * valid).sum(-1) / valid.sum(-1).clamp_min(1)
+
+    return FlowParts(mean(at.coords - far.coords), mean(far.coords - pixels), inside.sum(-1) / (h * w))
 
 
 def induced_flow_field(pose_i: torch.Tensor, pose_j: torch.Tensor, disparity_i: torch.Tensor,

@@ -46,6 +46,9 @@ class GraphParams:
     window: int = 25  # keyframes in the sliding window (the oldest one is the gauge)
     temporal_radius: int = 2  # temporal edges connect keyframes at most this far apart (both directions)
     proximity_max_flow: float = 10.0  # candidate proximity edge: mean induced flow below this (grid px)
+    proximity_overlap: float = 0.25  # a candidate that turned on the spot (no baseline for its depth) and that only
+    # its rotation puts beyond proximity_max_flow is judged by the flow its depth causes (edges.flow_parts) where at
+    # least this share of its pixels land in the new keyframe (0: always by the whole induced flow)
     proximity_max_edges: int = 3  # proximity edges added per new keyframe
     proximity_nms: int = 2  # a chosen proximity edge suppresses candidates this close in keyframe index
     remove_max_flow: float = 1.0  # the newest keyframe is redundant when its flow to the previous is below this

@@ -25,6 +25,19 @@ def held_path(graph: KeyframeGraph, k: int) -> tuple[float, float]:
     return float((centres[1:] - centres[:-1]).norm(dim=-1).sum()), float(max(1, graph.stamps[k - 1] - graph.stamps[0]))
 
 
+def still_between(graph: KeyframeGraph, a: int, b: int) -> bool:
+    """Keyframes ``a`` and ``b`` lie less than a hundredth of ``b``'s depth apart: their flow has no baseline."""
+    depth = 1.0 / float(graph.disparity[b].median().clamp_min(1e-12))
+    return float((graph.poses[a][:3, 3] - graph.poses[b][:3, 3]).norm()) < STILL_STEP * depth
+
+
+def turned_on_the_spot(graph: KeyframeGraph, k: int) -> bool:
+    """Keyframe ``k``'s steps to its held neighbours are all still (:func:`still_between`): nothing has measured
+    its depth yet."""
+    near = [i for i in (k - 1, k + 1) if 0 <= i < len(graph)]
+    return bool(near) and all(still_between(graph, i, k) for i in near)
+
+
 def reference_speed(graph: KeyframeGraph, k: int) -> float:
     """The speed keyframe ``k``'s step is judged by: the recent median (:func:`recent_speed`), or the held keyframes'
     mean speed (path / time) where that is higher. After a turn on the spot the recent steps are all still, their
