@@ -207,6 +207,7 @@ def test_flow_parts_take_the_rotation_out_and_measure_the_overlap():
     ii, jj = torch.tensor([0, 0, 0]), torch.tensor([1, 2, 3])
     induced = edges.induced_flow(poses, disp, intr, ii, jj)
     parts = edges.flow_parts(poses, disp, intr, ii, jj)
+    torch.testing.assert_close(parts.induced, induced)
     assert float(parts.parallax[0]) < 1e-6 and float(parts.rotation[0]) == pytest.approx(float(induced[0]), rel=1e-6)
     assert float(induced[0]) > 10 and 0.4 < float(parts.overlap[0]) < 0.6  # half of the view turned away
     assert float(parts.parallax[1]) == pytest.approx(float(induced[1]), rel=1e-6) and float(parts.parallax[1]) > 1

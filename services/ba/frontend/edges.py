@@ -35,6 +35,7 @@ def induced_flow(poses: torch.Tensor, disparity: torch.Tensor, intrinsics: torch
 class FlowParts(NamedTuple):
     """The induced flow of keyframe pairs taken apart (grid px means over the pixels in front of the target)."""
 
+    induced: torch.Tensor  # (E,) the whole induced flow (:func:`induced_flow`, from the same reprojection)
     parallax: torch.Tensor  # (E,) the flow the source's depth causes: reprojection minus the rotation's alone
     rotation: torch.Tensor  # (E,) the flow the rotation alone causes (the points at infinity)
     overlap: torch.Tensor  # (E,) share of the source's pixels that land inside the target image
@@ -56,7 +57,8 @@ def flow_parts(poses: torch.Tensor, disparity: torch.Tensor, intrinsics: torch.T
     def mean(flow: torch.Tensor) -> torch.Tensor:
         return torch.nan_to_num(flow.norm(dim=-1) * valid).sum(-1) / valid.sum(-1).clamp_min(1)
 
-    return FlowParts(mean(at.coords - far.coords), mean(far.coords - pixels), inside.sum(-1) / (h * w))
+    return FlowParts(mean(at.coords - pixels), mean(at.coords - far.coords), mean(far.coords - pixels),
+                     inside.sum(-1) / (h * w))
 
 
 def induced_flow_field(pose_i: torch.Tensor, pose_j: torch.Tensor, disparity_i: torch.Tensor,

@@ -365,16 +365,18 @@ class Frontend:
         state = g.stacked(cands + [k])
         last = len(cands)
         ii = torch.arange(last, device=self.device)
-        dist = edges.induced_flow(state.poses, state.disparity, g.intrinsics, ii, torch.full_like(ii, last))
-        if g.predict_flow and gp.proximity_overlap > 0:
+        jj = torch.full_like(ii, last)
+        if not (g.predict_flow and gp.proximity_overlap > 0):
+            dist = edges.induced_flow(state.poses, state.disparity, g.intrinsics, ii, jj)
+        else:
             # a keyframe that turned on the spot has no baseline for its depth; the first keyframe with one to it is
             # linked to it however far it turned (DIS starts from the flow the map predicts, rotation included),
             # judged by the flow its depth causes. Not in a driving turn: there every keyframe has a baseline
-            parts = edges.flow_parts(state.poses, state.disparity, g.intrinsics, ii, torch.full_like(ii, last))
+            parts = edges.flow_parts(state.poses, state.disparity, g.intrinsics, ii, jj)
             after_turn = k >= 2 and steps.still_between(g, k - 2, k - 1)  # the first keyframe out of a turn
-            still = torch.tensor([after_turn or steps.turned_on_the_spot(g, c) for c in cands], device=dist.device)
+            still = torch.tensor([after_turn or steps.turned_on_the_spot(g, c) for c in cands], device=ii.device)
             turned = still & (parts.rotation >= gp.proximity_max_flow) & (parts.overlap >= gp.proximity_overlap)
-            dist = torch.where(turned, parts.parallax, dist)
+            dist = torch.where(turned, parts.parallax, parts.induced)
         chosen = edges.proximity_pairs(k, cands, dist.cpu(), gp)
         g.proximity |= {(g.seqs[a], g.seqs[b]) for a, b in chosen}
 

@@ -25,10 +25,14 @@ def held_path(graph: KeyframeGraph, k: int) -> tuple[float, float]:
     return float((centres[1:] - centres[:-1]).norm(dim=-1).sum()), float(max(1, graph.stamps[k - 1] - graph.stamps[0]))
 
 
+def median_depth(graph: KeyframeGraph, k: int) -> float:
+    """Keyframe ``k``'s median depth (1 / its median disparity)."""
+    return 1.0 / float(graph.disparity[k].median().clamp_min(1e-12))
+
+
 def still_between(graph: KeyframeGraph, a: int, b: int) -> bool:
     """Keyframes ``a`` and ``b`` lie less than a hundredth of ``b``'s depth apart: their flow has no baseline."""
-    depth = 1.0 / float(graph.disparity[b].median().clamp_min(1e-12))
-    return float((graph.poses[a][:3, 3] - graph.poses[b][:3, 3]).norm()) < STILL_STEP * depth
+    return float((graph.poses[a][:3, 3] - graph.poses[b][:3, 3]).norm()) < STILL_STEP * median_depth(graph, b)
 
 
 def turned_on_the_spot(graph: KeyframeGraph, k: int) -> bool:
@@ -49,8 +53,7 @@ def reference_speed(graph: KeyframeGraph, k: int) -> float:
 def never_moved(graph: KeyframeGraph, k: int) -> bool:
     """The held keyframes before ``k`` span less than a hundredth of the scene's depth (a map started on the
     spot, turning): there is no speed to judge a first translation by, and it sets the map's scale."""
-    depth = 1.0 / float(graph.disparity[k - 1].median().clamp_min(1e-12))
-    return held_path(graph, k)[0] < STILL_STEP * depth
+    return held_path(graph, k)[0] < STILL_STEP * median_depth(graph, k - 1)
 
 
 def gap(graph: KeyframeGraph, k: int) -> float:
