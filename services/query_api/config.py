@@ -9,6 +9,7 @@ from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
 from ..common.config_file import KmVipeSettings
+from ..common.models.store import default_models_dir
 from .core.text import DEFAULT_TEMPLATES
 
 
@@ -67,8 +68,9 @@ class QuerySettings(KmVipeSettings):
     """Backbone id the oracle vectors live in (the map's PCA backbone must equal it)."""
     backbone: str = "dinov2-vits14-imgfocus"
     """Registry backbone for query by example (its space must equal the map's)."""
-    models_dir: Path | None = None
-    """Air-gapped model folder (``<models_dir>/<name>/``); also searched: the Hugging Face cache."""
+    models_dir: Path | None = Field(default_factory=default_models_dir)
+    """Air-gapped model folder (``<models_dir>/<name>/``; defaults to ``$KMVIPE_MODELS_DIR``); also searched: the
+    Hugging Face cache."""
     device: str = "auto"
     """torch device for the text and example models: auto (CUDA when present), cpu, cuda, cuda:1."""
     trajectory_capacity: int = Field(200_000, ge=1)

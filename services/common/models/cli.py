@@ -3,23 +3,13 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 from pathlib import Path
 
 from ..errors import ModelError
 from .registry import HubSource, all_entries, get_entry
-from .store import ModelStore
+from .store import MODELS_DIR_ENV, ModelStore, default_models_dir
 
 log = logging.getLogger(__name__)
-
-MODELS_DIR_ENV = "KMVIPE_MODELS_DIR"
-
-
-def default_models_dir() -> Path | None:
-    """``$KMVIPE_MODELS_DIR`` when set (the air-gapped models folder), else None."""
-    value = os.environ.get(MODELS_DIR_ENV, "").strip()
-    return Path(value).expanduser() if value else None
-
 
 def register(subparsers) -> None:
     """Add ``models {list,pull}`` to the kmvipe CLI."""

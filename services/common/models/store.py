@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import importlib.util
 import logging
+import os
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -18,6 +19,13 @@ from .registry import HubSource, ModelEntry, PypiSource
 log = logging.getLogger(__name__)
 
 WEIGHT_SUFFIXES = (".safetensors", ".bin", ".pth", ".onnx")
+MODELS_DIR_ENV = "KMVIPE_MODELS_DIR"
+
+
+def default_models_dir() -> Path | None:
+    """``$KMVIPE_MODELS_DIR`` when set (the air-gapped models folder every service searches), else None."""
+    value = os.environ.get(MODELS_DIR_ENV, "").strip()
+    return Path(value).expanduser() if value else None
 
 
 @dataclass(frozen=True)

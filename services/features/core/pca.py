@@ -106,6 +106,11 @@ def merge_moments(parts: list[Moments]) -> Moments:
     return Moments(sum(m.count for m in parts), sum(m.total for m in parts), sum(m.outer for m in parts))
 
 
+def _host(t: torch.Tensor) -> np.ndarray:
+    """float32 numpy copy of ``t``, wherever it lives (the backbone's features are on CUDA when there is one)."""
+    return t.detach().float().cpu().numpy()
+
+
 def fit_moments(m: Moments, n_components: int, backbone: str, version: int = 1) -> PcaBasis:
     """Fit a K-component basis to the rows summarised by ``m`` (N ≥ K, C ≥ K)."""
     n, c = m.count, m.total.shape[0]
@@ -118,9 +123,9 @@ def fit_moments(m: Moments, n_components: int, backbone: str, version: int = 1) 
     return PcaBasis(
         version=version,
         backbone=backbone,
-        mean=mean.float().numpy(),
-        components=evecs[:, order].T.float().contiguous().numpy(),
-        explained_variance=evals[order].float().numpy(),
+        mean=_host(mean),
+        components=_host(evecs[:, order].T.contiguous()),
+        explained_variance=_host(evals[order]),
         total_variance=float(evals.clamp_min(0).sum()),
     )
 
@@ -136,9 +141,9 @@ def project(basis: PcaBasis, features: torch.Tensor) -> np.ndarray:
     if f.ndim != 3 or f.shape[0] != basis.mean.shape[0]:
         raise ValueError(f"features must be (C={basis.mean.shape[0]}, h, w), got {tuple(f.shape)}")
     c, h, w = f.shape
-    rows = f.reshape(c, -1).T - torch.from_numpy(basis.mean)
-    codes = rows @ torch.from_numpy(basis.components).T
-    return codes.reshape(h, w, -1).numpy().astype(np.float16)
+    rows = f.reshape(c, -1).T - torch.from_numpy(basis.mean).to(f.device)
+    codes = rows @ torch.from_numpy(basis.components).to(f.device).T
+    return _host(codes.reshape(h, w, -1)).astype(np.float16)
 
 
 def reconstruct(basis: PcaBasis, codes: np.ndarray) -> np.ndarray:
@@ -157,7 +162,7 @@ def retained_variance(
     """
     if centre not in ("own", "basis"):
         raise ValueError(f"centre must be 'own' or 'basis', got {centre!r}")
-    x = _as_rows(samples).numpy().astype(np.float64)
+    x = _as_rows(samples).cpu().numpy().astype(np.float64)
     about = x.mean(0) if centre == "own" else basis.mean.astype(np.float64)
     offset = x - basis.mean
     residual = offset - (offset @ basis.components.T) @ basis.components
