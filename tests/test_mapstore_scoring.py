@@ -6,12 +6,16 @@ from collections import deque
 
 import numpy as np
 import pytest
+import torch
 
 from services.mapstore.config import RegionParams
 from services.mapstore.core.regions import connected_components, find_regions
 from services.mapstore.core.scoring import PcaBasis, ScoringIndex, decode_codes
 
 D, K = 48, 8
+# the mapstore scores on CUDA where there is one (device auto); nothing but a GPU run shows a host/device mix-up
+DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="no CUDA device here (bench/gpu_check.sh runs it on a lent GPU)"))]
 
 
 def random_basis(rng: np.random.Generator, orthonormal: bool) -> PcaBasis:
@@ -28,35 +32,38 @@ def brute_cosine(codes: np.ndarray, basis: PcaBasis, queries: np.ndarray) -> np.
     return q @ f.T
 
 
+@pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("orthonormal", [True, False])
-def test_scores_equal_brute_force_cosine(orthonormal):
+def test_scores_equal_brute_force_cosine(orthonormal, device):
     rng = np.random.default_rng(0)
     basis = random_basis(rng, orthonormal)
     codes = rng.normal(size=(500, K)).astype(np.float16)
     queries = rng.normal(size=(7, D))
-    index = ScoringIndex(codes, basis, device="cpu")
+    index = ScoringIndex(codes, basis, device=device)
     np.testing.assert_allclose(index.score(queries), brute_cosine(codes, basis, queries), atol=2e-5)
     np.testing.assert_allclose(index.score(queries[0])[0], brute_cosine(codes, basis, queries[:1])[0], atol=2e-5)
 
 
-def test_topk_over_chunks_equals_full_sort():
+@pytest.mark.parametrize("device", DEVICES)
+def test_topk_over_chunks_equals_full_sort(device):
     rng = np.random.default_rng(1)
     basis = random_basis(rng, True)
     codes = rng.normal(size=(1000, K)).astype(np.float32)
     queries = rng.normal(size=(5, D))
-    index = ScoringIndex(codes, basis, device="cpu")
+    index = ScoringIndex(codes, basis, device=device)
     ref = brute_cosine(codes, basis, queries)
     top = index.topk(queries, k=10, chunk=97)  # blocks smaller than N: exercises the merge
     np.testing.assert_array_equal(top.indices, np.argsort(-ref, axis=1)[:, :10])
     np.testing.assert_allclose(top.scores, np.sort(ref, axis=1)[:, ::-1][:, :10], atol=2e-5)
 
 
-def test_argmax_over_labels_equals_brute_force():
+@pytest.mark.parametrize("device", DEVICES)
+def test_argmax_over_labels_equals_brute_force(device):
     rng = np.random.default_rng(2)
     basis = random_basis(rng, False)
     codes = rng.normal(size=(700, K)).astype(np.float32)
     labels = rng.normal(size=(4, D))
-    index = ScoringIndex(codes, basis, device="cpu")
+    index = ScoringIndex(codes, basis, device=device)
     lab, score = index.argmax(labels, chunk=128)
     ref = brute_cosine(codes, basis, labels)
     np.testing.assert_array_equal(lab, ref.argmax(0))

@@ -46,9 +46,19 @@ def snapshot(state) -> bytes:
 
 
 def restore(blob: bytes, device: torch.device) -> Checkpoint:
-    """A checkpoint from :func:`snapshot`'s bytes, tensors on ``device``."""
-    data = torch.load(io.BytesIO(blob), map_location=device, weights_only=False)  # our own file, not a download
-    return Checkpoint(int(data["seq"]), data["fields"])
+    """A checkpoint from :func:`snapshot`'s bytes: tensors saved on an accelerator go to ``device``, those saved
+    on the CPU stay there (ba keeps flow targets, codes and priors on the CPU on purpose: new ones meet them)."""
+    def place(storage, location: str):
+        return storage if location.startswith("cpu") or device.type == "cpu" else storage.to(device=device)
+
+    data = torch.load(io.BytesIO(blob), map_location=place, weights_only=False)  # our own file, not a download
+    fields = data["fields"]
+    frontend = fields.get("frontend")
+    if frontend is not None:  # pickled with the device it ran on, which another machine may not have
+        frontend.device = device
+        if frontend.graph is not None:
+            frontend.graph.device = device
+    return Checkpoint(int(data["seq"]), fields)
 
 
 def path_for(directory: str | Path, stream: str, session: str) -> Path:

@@ -118,5 +118,5 @@ def uncentred_codes(codes: torch.Tensor, mean: torch.Tensor, components: torch.T
     mu, v = mean.double(), components.double()
     m = v @ mu
     rest = (mu - v.T @ m).norm()
-    shifted = codes + m.to(codes.dtype)
-    return torch.cat([shifted, rest.to(codes.dtype).expand(*codes.shape[:-1], 1)], -1)
+    shifted = codes + m.to(codes)
+    return torch.cat([shifted, rest.to(codes).expand(*codes.shape[:-1], 1)], -1)
