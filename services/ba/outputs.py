@@ -2,7 +2,8 @@
 intrinsics when they changed (or at the end of a stream)."""
 from __future__ import annotations
 
-from services.ba.frontend.frontend import Frontend, PoseUpdate, Update
+from services.ba.frontend.frontend import Frontend
+from services.ba.frontend.updates import PoseUpdate, Update
 from services.common import keys
 from services.common.schema import Graph, Intrinsics, Message, Poses
 

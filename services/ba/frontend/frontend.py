@@ -29,6 +29,7 @@ from services.ba.frontend.frames import FramePoses, FrameRecord
 from services.ba.frontend.graph import GRID, KeyframeGraph, NativeCodes, grid_intrinsics, working_intrinsics
 from services.ba.frontend.params import FrontendParams
 from services.ba.frontend.tracker import Reference, propagate_disparity
+from services.ba.frontend.updates import Update, graph_update, pose_update
 
 logger = logging.getLogger(__name__)
 
@@ -54,29 +55,6 @@ class FrameInput(NamedTuple):
     tracked: tuple[int, torch.Tensor] | None = None  # (keyframe seq, (4, 4) keyframe_from_cam) from tracking
     interpolate_only: bool = False  # pose it between its keyframes by time, spend no flow on it
     tracked_world: torch.Tensor | None = None  # (4, 4) world_from_cam from tracking, when its keyframe is not mapped
-
-
-class GraphUpdate(NamedTuple):
-    kf_seqs: np.ndarray  # (N,) int64 every keyframe
-    poses: np.ndarray  # (N, 4, 4) float64 world_from_cam
-    intrinsics: np.ndarray  # (4,) float64 at working resolution
-    updated_seqs: np.ndarray  # (M,) int64 keyframes whose maps below changed
-    disparities: np.ndarray  # (M, h, w) float32
-    static_weights: np.ndarray  # (M, h, w) float32 ARK weight (1 static, 0 dynamic)
-    confidence: np.ndarray  # (M, h, w) float32 mean flow confidence
-    metric: bool  # a depth prior fixed the scale
-
-
-class PoseUpdate(NamedTuple):
-    frame_seqs: np.ndarray  # (F,) int64
-    stamps_ns: np.ndarray  # (F,) int64
-    poses: np.ndarray  # (F, 4, 4) float64 world_from_cam
-
-
-class Update(NamedTuple):
-    graph: GraphUpdate | None = None
-    poses: PoseUpdate | None = None
-    intrinsics_changed: bool = False
 
 
 class Frontend:
@@ -174,7 +152,7 @@ class Frontend:
             self.frames.align(self.graph, seq)
             seqs.append(seq)
         self._retire()
-        return Update(poses=self._pose_update(sorted(set(seqs))))
+        return Update(poses=pose_update(self.graph, self.frames, sorted(set(seqs))))
 
     def _retire(self) -> None:
         """Drop the oldest keyframes beyond ``keep_keyframes`` with the frames before the new oldest one."""
@@ -222,11 +200,11 @@ class Frontend:
             # than held for one that may never come
             for seq in waiting:
                 self.frames.align(self.graph, seq)
-            return Update(poses=self._pose_update(waiting))
+            return Update(poses=pose_update(self.graph, self.frames, waiting))
         if not self.initialised or frame.seq > self.graph.seqs[-1]:
             return Update()  # aligned once the keyframe after it exists
         self.frames.align(self.graph, frame.seq)
-        return Update(poses=self._pose_update([frame.seq]))
+        return Update(poses=pose_update(self.graph, self.frames, [frame.seq]))
 
     def finish(self) -> Update:
         """End of stream: BA over every keyframe still held, frames not aligned yet aligned; the final state."""
@@ -299,7 +277,7 @@ class Frontend:
         if seq is None:
             return Update()
         self.frames.measure(g, seq)
-        return Update(poses=self._pose_update([seq]))
+        return Update(poses=pose_update(self.graph, self.frames, [seq]))
 
     # --- keyframes -----------------------------------------------------------------------------------
     def _check(self, kf: KeyframeInput) -> np.ndarray:
@@ -467,37 +445,8 @@ class Frontend:
         focal = float(g.intrinsics[0])
         changed = abs(focal - self._focal) > 1e-6 * abs(self._focal)
         self._focal = focal
-        graph = GraphUpdate(
-            kf_seqs=np.array(g.seqs, np.int64), poses=self._np_poses(g.poses),
-            intrinsics=working_intrinsics(g.intrinsics), updated_seqs=np.array([g.seqs[k] for k in updated], np.int64),
-            disparities=self._np_maps(g.disparity, updated), static_weights=self._np_maps(g.static, updated),
-            confidence=self._np_maps(g.confidence, updated), metric=self.metric)
-        return Update(graph, self._pose_update(sorted(set(frame_seqs)) + sorted(anchors)), changed)
-
-    def _pose_update(self, frame_seqs: list[int]) -> PoseUpdate | None:
-        g = self.graph
-        seqs, stamps, poses = [], [], []
-        for seq in frame_seqs:
-            if seq in g.seqs:
-                k = g.index(seq)
-                pose, stamp = g.poses[k], g.stamps[k]
-            else:
-                pose, stamp = self.frames.pose(g, seq), self.frames.frames[seq].stamp
-            if pose is not None and bool(torch.isfinite(pose).all()):
-                seqs.append(seq), stamps.append(stamp), poses.append(pose)
-        if not seqs:
-            return None
-        order = np.argsort(seqs)
-        return PoseUpdate(np.array(seqs, np.int64)[order], np.array(stamps, np.int64)[order],
-                          self._np_poses(poses)[order])
-
-    @staticmethod
-    def _np_poses(poses: list[torch.Tensor]) -> np.ndarray:
-        return torch.stack(poses).detach().cpu().numpy().astype(np.float64)
-
-    @staticmethod
-    def _np_maps(maps: list[torch.Tensor], which: list[int]) -> np.ndarray:
-        return torch.stack([maps[k] for k in which]).detach().cpu().numpy().astype(np.float32)
+        poses = pose_update(g, self.frames, sorted(set(frame_seqs)) + sorted(anchors))
+        return Update(graph_update(g, updated, self.metric), poses, changed)
 
     @property
     def intrinsics(self) -> np.ndarray | None:
