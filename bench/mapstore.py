@@ -25,7 +25,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from services.mapstore.config import MapParams  # noqa: E402
 from services.mapstore.core.keyframe import KeyframeContent, KeyframeDepth  # noqa: E402
 from services.mapstore.core.map import KeyframeMap  # noqa: E402
-from services.mapstore.core.scoring import PcaBasis, ScoringIndex  # noqa: E402
+from services.mapstore.core.index import ScoringIndex  # noqa: E402
+from services.mapstore.core.scoring import PcaBasis  # noqa: E402
 from services.mapstore.store import MapStore  # noqa: E402
 
 GRID_HW = (48, 64)

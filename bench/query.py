@@ -76,7 +76,7 @@ class _MapState:
     def __init__(self, ijk, xyz, rgb, codes, basis, answer_cache: int):
         from services.mapstore.config import MapParams
         from services.mapstore.core.fusion import FusedVoxels
-        from services.mapstore.core.scoring import ScoringIndex
+        from services.mapstore.core.index import ScoringIndex
         from services.mapstore.state import AnswerCache
 
         n = len(xyz)

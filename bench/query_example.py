@@ -38,7 +38,8 @@ from services.features.core.geometry import resize_to_working, working_size  # n
 from services.features.core.pca import fit_pca, project, sample_rows  # noqa: E402
 from services.features.core.pyramid import PyramidParams, multiscale_features  # noqa: E402
 from services.mapstore.config import RegionParams  # noqa: E402
-from services.mapstore.core.scoring import PcaBasis, ScoringIndex  # noqa: E402
+from services.mapstore.core.index import ScoringIndex  # noqa: E402
+from services.mapstore.core.scoring import PcaBasis  # noqa: E402
 from services.query_api.config import QuerySettings  # noqa: E402
 from services.query_api.core.example import box_mask, fit_to_patches, pooled_feature  # noqa: E402
 

@@ -15,7 +15,8 @@ from services.mapstore.core.geometry import backproject_grid, grid_intrinsics, s
 from services.mapstore.core.keyframe import KeyframeContent, KeyframeDepth
 from services.mapstore.core.map import KeyframeMap
 from services.mapstore.core.regions import find_regions
-from services.mapstore.core.scoring import PcaBasis, ScoringIndex
+from services.mapstore.core.index import ScoringIndex
+from services.mapstore.core.scoring import PcaBasis
 
 synth = pytest.importorskip("services.synth")
 

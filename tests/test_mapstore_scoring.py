@@ -10,7 +10,8 @@ import torch
 
 from services.mapstore.config import RegionParams
 from services.mapstore.core.regions import connected_components, find_regions
-from services.mapstore.core.scoring import PcaBasis, ScoringIndex, decode_codes
+from services.mapstore.core.index import ScoringIndex
+from services.mapstore.core.scoring import PcaBasis, decode_codes
 
 D, K = 48, 8
 # the mapstore scores on CUDA where there is one (device auto); nothing but a GPU run shows a host/device mix-up

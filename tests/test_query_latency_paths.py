@@ -15,7 +15,8 @@ from services.mapstore import queries
 from services.mapstore.config import RegionParams
 from services.mapstore.core import regions as regions_mod
 from services.mapstore.core.regions import connected_components, find_regions, regions_of
-from services.mapstore.core.scoring import PcaBasis, ScoringIndex, best_of, decode_codes
+from services.mapstore.core.index import ScoringIndex
+from services.mapstore.core.scoring import PcaBasis, best_of, decode_codes
 from services.mapstore.service import handle
 from services.mapstore.state import MapState
 from tests.test_mapstore_service import STREAM, settings, stream_messages

@@ -1,4 +1,5 @@
-"""Translate PCA codes between two versions of a stream's basis (pure numpy / torch, no I/O).
+"""Translate PCA codes between two versions of a stream's basis (pure numpy / torch, no I/O; torch is never
+imported here: a tensor can only exist where its caller already has it, and the mapstore works without it).
 
 A basis (μ: (D,), V: (K, D) with orthonormal rows) codes a backbone feature f as z = V(f − μ) and decodes
 it as f̂ = μ + Vᵀz (``services/features/core/pca.py``; the same layout travels in the ``PcaBasis`` message).
@@ -15,10 +16,10 @@ from the version it was coded with straight to the latest one.
 """
 from __future__ import annotations
 
+import sys
 from typing import NamedTuple, Protocol, TypeVar
 
 import numpy as np
-import torch
 
 
 class HasBasis(Protocol):
@@ -68,7 +69,7 @@ def _checked(basis: HasBasis, name: str) -> tuple[np.ndarray, np.ndarray]:
     return mu, v
 
 
-Codes = TypeVar("Codes", np.ndarray, torch.Tensor)
+Codes = TypeVar("Codes")  # np.ndarray or torch.Tensor
 
 
 def convert_codes(codes: Codes, cmap: CodeMap) -> Codes:
@@ -80,7 +81,8 @@ def convert_codes(codes: Codes, cmap: CodeMap) -> Codes:
     k_a = cmap.matrix.shape[1]
     if codes.shape[-1] != k_a:
         raise ValueError(f"codes must be (..., {k_a}), got {tuple(codes.shape)}")
-    if isinstance(codes, torch.Tensor):
+    torch = sys.modules.get("torch")
+    if torch is not None and isinstance(codes, torch.Tensor):
         out_dtype = torch.float32 if codes.dtype in (torch.float16, torch.bfloat16) else codes.dtype
         m = torch.from_numpy(cmap.matrix).to(codes.device)
         c = torch.from_numpy(cmap.offset).to(codes.device)

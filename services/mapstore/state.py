@@ -36,7 +36,7 @@ import threading
 from collections import OrderedDict
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
+from typing import TYPE_CHECKING, Iterator
 
 import cv2
 import numpy as np
@@ -45,10 +45,13 @@ from services.mapstore.config import MapstoreSettings
 from services.mapstore.core.geometry import sample_cell_colours
 from services.mapstore.core.keyframe import KeyframeContent, KeyframeDepth
 from services.mapstore.core.map import KeyframeMap, code_maps_to_latest
-from services.mapstore.core.scoring import PcaBasis, ScoringIndex
+from services.mapstore.core.scoring import PcaBasis
 from services.mapstore.poselog import PoseLog
 from services.mapstore.sessions import archive_other_session
 from services.mapstore.store import MapStore, Thumbnail
+
+if TYPE_CHECKING:
+    from services.mapstore.core.index import ScoringIndex
 
 log = logging.getLogger(__name__)
 RESTART_PAGE = 64  # keyframes read from the store at a time when a restart streams them
@@ -412,6 +415,8 @@ class MapState:
         with self.lock:
             basis = self.basis()
             if self._index is None or self._index[:2] != (self.map.revision, basis.version):
+                from services.mapstore.core.index import ScoringIndex  # torch: loaded by the first query only
+
                 fused = self.map.fused()  # voxels only keyframes without codes saw have none: absent, not scored
                 self._index = (self.map.revision, basis.version,
                                ScoringIndex(fused.codes, basis, self.map.params.scoring.device,
