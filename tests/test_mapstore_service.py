@@ -243,11 +243,13 @@ def test_the_map_is_fused_on_a_thread_behind_tracking_and_mapping(tmp_path, tcp_
     assert set(others.values()) <= set(before.values()) | {0}  # nobody else was made nicer
 
 
-def test_a_mapstore_loads_torch_only_once_it_is_queried():
+@pytest.mark.parametrize("modules", ["services.mapstore.service, services.mapstore.state",
+                                     "services.query_api.service, services.query_api.app, services.query_api.textpath"])
+def test_the_map_and_the_gateway_load_torch_only_when_a_query_needs_it(modules):
     # torch is ~2 s of CPU and ~150 MB per process: a mapstore that only builds the map (an edge box, most test
-    # pipelines) never needs it; scoring a query imports it (services/mapstore/core/index.py)
-    probe = ("import sys, services.mapstore.service, services.mapstore.state; "
-             "print('torch' in sys.modules)")
+    # pipelines) never needs it, and a gateway only for a language model or an example image; scoring a query
+    # (services/mapstore/core/index.py), a CLIP prompt or an example imports it then
+    probe = f"import sys, {modules}; print('torch' in sys.modules)"
     done = subprocess.run([sys.executable, "-c", probe], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "False"

@@ -15,11 +15,9 @@ from ..common import keys
 from ..common.bus import Bus, Delivery
 from ..common.errors import KmVipeError, ModelError, ServiceTimeout
 from ..common.models import ModelStore
-from ..common.models.backbones import normalise_rgb
 from ..common.schema import MapAnswer, MapSegment, Poses
 from .config import QuerySettings
 from .core.answers import QueryResult, RegionParams, group_answer
-from .core.example import box_mask, fit_to_patches, pooled_feature
 from .core.trajectory import PoseBook, Trajectory
 from .mapclient import MapClient, MapServiceError, QueryOptions, StreamNotFound
 from .textpath import SpaceMismatch, TextPath
@@ -140,6 +138,10 @@ class Gateway:
 
     def query_example(self, stream: str, image: np.ndarray, box=None, mask=None, opts=QueryOptions()) -> Answer:
         """Image (H, W, 3) uint8 RGB and a pixel box (x0, y0, x1, y1) or (H, W) bool mask → the answer."""
+        # torch, like the backbone: a gateway never asked for an example starts and runs without it
+        from ..common.models.backbones import normalise_rgb
+        from .core.example import box_mask, fit_to_patches, pooled_feature
+
         space = self.map_space(stream)
         backbone = self.backbone()
         if space and backbone.output_space != space:

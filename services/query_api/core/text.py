@@ -14,10 +14,12 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import Callable, Protocol, Sequence
+from typing import TYPE_CHECKING, Callable, Protocol, Sequence
 
 import numpy as np
-import torch
+
+if TYPE_CHECKING:
+    import torch
 
 # Talk2DINO's templates: ``sub_imagenet_template`` of ``src/open_vocabulary_segmentation/datasets/templates.py``
 # (from TCL), which its evaluation configs (``configs/*/eval_*.yml``: ``template: sub_imagenet_template``) and
@@ -71,16 +73,19 @@ class PromptEncoder:
         self.text_model, self.head, self.templates = text_model, head, tuple(templates)
         self.name, self.output_space = name, output_space
 
-    @torch.inference_mode()
     def encode(self, labels: Sequence[str]) -> np.ndarray:
         """(Q,) labels → (Q, D) float32 unit vectors."""
+        import torch  # here, not at the top: the oracle encoder and the gateway around it run without torch
+
         if not labels:
             raise ValueError("encode() needs at least one label")
         prompts = [t.format(label=label) for label in labels for t in self.templates]
-        clip = self.text_model.encode(prompts).float()  # (Q·T, C)
-        # upstream averages in CLIP space and projects the mean (the head is non-linear: not the mean of projections)
-        mean = clip.reshape(len(labels), len(self.templates), -1).mean(dim=1)  # (Q, C)
-        return _unit_rows(self.head(mean).float().cpu().numpy())  # (Q, D)
+        with torch.inference_mode():
+            clip = self.text_model.encode(prompts).float()  # (Q·T, C)
+            # upstream averages in CLIP space and projects the mean (the head is non-linear: not the mean of
+            # projections)
+            mean = clip.reshape(len(labels), len(self.templates), -1).mean(dim=1)  # (Q, C)
+            return _unit_rows(self.head(mean).float().cpu().numpy())  # (Q, D)
 
 
 class OracleTextEncoder:
