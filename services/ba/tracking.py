@@ -19,6 +19,7 @@ import torch
 from services.common import keys
 from services.common.bus import Bus, Inbox
 from services.common.lifecycle import nice_this_thread
+from services.common.rotations import is_rigid
 from services.common.schema import Eos, FrameLite, Keyframe, Poses
 from services.ba.frontend.tracker import Reference
 from services.ba.tracking_process import LocalTracker, TrackerProcess
@@ -38,6 +39,7 @@ class TrackingLoop:
         self._pending_ref: Reference | None = None
         self._reset = False
         self.tracked = 0  # frames posed by tracking in this stream
+        self.not_rigid = 0  # tracked poses that were not rigid transforms (not published)
         self.last_seq = -1  # highest seq handled (for progress reports)
         # seq -> (reference keyframe seq, (4, 4) reference_from_cam, (4, 4) world_from_cam): mapping anchors the
         # frame there instead of aligning it again, and starts a keyframe from it (dict operations are atomic;
@@ -125,6 +127,11 @@ class TrackingLoop:
             self._publish(msg, pose)
 
     def _publish(self, msg: FrameLite | Keyframe, pose: np.ndarray, provisional: bool = False) -> None:
+        if not is_rigid(pose):  # the frame gets mapping's pose later; this one has no quaternion
+            self.not_rigid += 1
+            log.warning("tracked pose is not a rigid transform; not published",
+                        extra={"stream": self.stream, "seq": msg.seq, "count": self.not_rigid})
+            return
         self.bus.publish(keys.topic(self.stream, keys.POSE), Poses(
             self.stream, msg.seq, time.time_ns(), frame_seqs=np.array([msg.seq], np.int64),
             stamps_ns=np.array([msg.t_ns], np.int64), poses=np.asarray(pose, np.float64)[None],

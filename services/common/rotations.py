@@ -26,3 +26,17 @@ def quaternion_wxyz(rot: np.ndarray) -> np.ndarray:
 def rotation_from_wxyz(q: np.ndarray) -> np.ndarray:
     """``(..., 4)`` quaternions ``(w, x, y, z)`` (normalised here) -> ``(..., 3, 3)`` rotations."""
     return quaternion_to_rotation(np.roll(np.asarray(q, np.float64), -1, axis=-1))
+
+
+def is_rigid(poses: np.ndarray, tol: float = 1e-3) -> np.ndarray:
+    """``(..., 4, 4)`` -> ``(...)`` bool: finite, a rotation block on SO(3) within ``tol`` (RᵀR = I, det R > 0)
+    and the last row (0, 0, 0, 1). Anything else is not a pose: no quaternion exists for it, and one such matrix
+    made a run's TUM writer fail at its end."""
+    poses = np.asarray(poses, np.float64)
+    finite = np.isfinite(poses).all(axis=(-2, -1))
+    safe = np.where(finite[..., None, None], poses, 0.0)
+    rot = safe[..., :3, :3]
+    gram = np.abs(np.swapaxes(rot, -1, -2) @ rot - np.eye(3)).max(axis=(-2, -1))
+    bottom = np.abs(safe[..., 3, :] - np.array([0.0, 0.0, 0.0, 1.0])).max(axis=-1)
+    return finite & (gram <= tol) & (np.linalg.det(rot) > 0) & (bottom <= tol)
+

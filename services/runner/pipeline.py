@@ -24,6 +24,7 @@ from ..common import keys
 from ..common.bus import Bus, Delivery
 from ..common.config import BusSettings
 from ..common.errors import KmVipeError
+from ..common.rotations import is_rigid
 from ..common.schema import Credit, Eos, Frame, Keyframe, Poses
 from . import children as kids
 from .outputs import write_live, write_outputs
@@ -129,7 +130,11 @@ class _Observer:
             elif isinstance(msg, Keyframe):
                 self.keyframes += 1
             elif isinstance(msg, Poses):
-                for seq, stamp, pose in zip(msg.frame_seqs, msg.stamps_ns, msg.poses):
+                rigid = is_rigid(msg.poses)
+                for seq, stamp, pose, ok in zip(msg.frame_seqs, msg.stamps_ns, msg.poses, rigid):
+                    if not ok:  # no quaternion exists for it: the trajectory files could not be written
+                        log.warning("a pose that is not a rigid transform ignored", extra={"seq": int(seq)})
+                        continue
                     if int(seq) not in self.first_pose:
                         self.first_pose[int(seq)] = (now, int(stamp), pose)
                         if msg.tracked:

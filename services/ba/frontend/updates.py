@@ -1,6 +1,7 @@
 """What the frontend hands out: the graph's state and poses as numpy, copied off the BA device (no transport)."""
 from __future__ import annotations
 
+import logging
 from typing import NamedTuple
 
 import numpy as np
@@ -8,6 +9,9 @@ import torch
 
 from services.ba.frontend.frames import FramePoses
 from services.ba.frontend.graph import KeyframeGraph, working_intrinsics
+from services.common.rotations import is_rigid
+
+log = logging.getLogger(__name__)
 
 
 class GraphUpdate(NamedTuple):
@@ -44,8 +48,9 @@ def graph_update(g: KeyframeGraph, updated: list[int], metric: bool) -> GraphUpd
 
 
 def pose_update(g: KeyframeGraph, frames: FramePoses, frame_seqs: list[int]) -> PoseUpdate | None:
-    """The finite poses of ``frame_seqs`` (keyframes from the graph, frames from their anchors) in seq order;
-    None when there is none."""
+    """The poses of ``frame_seqs`` (keyframes from the graph, frames from their anchors) in seq order, those that
+    are rigid transforms only (a pose that is not has no quaternion, and no consumer can use it); None when there
+    is none."""
     seqs, stamps, poses = [], [], []
     for seq in frame_seqs:
         if seq in g.seqs:
@@ -58,8 +63,14 @@ def pose_update(g: KeyframeGraph, frames: FramePoses, frame_seqs: list[int]) -> 
     if not seqs:
         return None
     order = np.argsort(seqs)
-    return PoseUpdate(np.array(seqs, np.int64)[order], np.array(stamps, np.int64)[order],
-                      to_numpy(poses, np.float64)[order])
+    arrays = to_numpy(poses, np.float64)[order]
+    rigid = is_rigid(arrays)
+    if not rigid.all():
+        log.warning("poses that are not rigid transforms left out", extra={
+            "seqs": np.array(seqs, np.int64)[order][~rigid].tolist()})
+        if not rigid.any():
+            return None
+    return PoseUpdate(np.array(seqs, np.int64)[order][rigid], np.array(stamps, np.int64)[order][rigid], arrays[rigid])
 
 
 def to_numpy(tensors: list[torch.Tensor], dtype) -> np.ndarray:
