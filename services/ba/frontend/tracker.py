@@ -169,7 +169,7 @@ class Tracker:
             return
         # every product is pulled back onto SO(3): the promoted poses are multiplied by each correction's fix, and
         # the next fix is computed from them, so rounding off SO(3) roughly doubled with every correction (1e-6 after
-        # 35 corrections in a row; a KITTI stream corrects ~80 times, and at the end its prediction was no rotation)
+        # 35 corrections in a row; at the end of a live KITTI stream, mapping far behind, a prediction had det R < 0)
         fix = se3.orthonormalize(ref.pose @ se3.inverse(tracked))
         head = self._head
         pose = se3.orthonormalize(fix @ head.pose)
