@@ -3,6 +3,14 @@
 # and lossless with the backbone on the GPU. The machine has no registry access and Python 3.12 with torch, so
 # the project's other wheels travel in .whl/ (see docs/BENCHMARKS.md, "GPU"), KITTI in .gpudata/, and the
 # backbone is a random-weight DINOv2 ViT-B/14-reg of the hub layout: timings do not depend on the weights.
+# Prepare here (both folders git-ignored through .git/info/exclude, then named in the device call's `carry`):
+#   echo /.whl/ >> .git/info/exclude; echo /.gpudata/ >> .git/info/exclude
+#   pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+#     --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 -d .whl \
+#     <each of: fastapi starlette pydantic pydantic_core pydantic-settings python-dotenv annotated-types
+#      typing-inspection uvicorn eclipse-zenoh python-json-logger prometheus-fastapi-instrumentator rosbags lz4
+#      cryptography cffi typing_extensions, at the versions `.venv/bin/pip list` shows>
+#   mkdir -p .gpudata && cp -r ../shared/data/kitti07_160 .gpudata/
 # Usage there: bash bench/gpu_check.sh   (writes $OUT/*.log and $OUT/live.json)
 set -uo pipefail
 OUT=${OUT:-/tmp/gpu-out}; mkdir -p "$OUT"
