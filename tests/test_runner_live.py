@@ -19,7 +19,8 @@ import pytest
 
 from services.common.bus import Delivery
 from services.common.schema import Eos, Frame, Poses
-from services.runner.pipeline import RunReport, _fill_report, _Observer
+from services.runner.observer import Observer, fill_report
+from services.runner.pipeline import RunReport
 from services.runner.resources import ResourceMonitor
 
 SPEC = "synth:frames=30,width=256,height=192"
@@ -27,7 +28,7 @@ STAGES = ("ingest", "features", "ba", "mapstore")
 KMVIPE = Path(sys.executable).parent / "kmvipe"
 
 
-def _deliver(observer: _Observer, msg) -> None:
+def _deliver(observer: Observer, msg) -> None:
     observer.on_message(Delivery("kmvipe/cam0/x", msg))
 
 
@@ -43,7 +44,7 @@ def _poses(seqs, tracked: bool, offset: float = 0.0, final: bool = False) -> Pos
 
 
 def test_the_first_pose_of_each_frame_is_kept_and_frames_ingest_dropped_count_as_not_posed():
-    observer = _Observer(last_stage="ba")
+    observer = Observer(last_stage="ba")
     for seq in (0, 1, 3):  # ingest read 0..4, dropped 2 and 4
         _deliver(observer, _frame(seq))
     _deliver(observer, _poses([0], tracked=True))
@@ -55,7 +56,7 @@ def test_the_first_pose_of_each_frame_is_kept_and_frames_ingest_dropped_count_as
                                codes_skipped=4 if stage == "features" else 0))
 
     report = RunReport("synth:", "cam0", ["ingest", "features", "ba"], [], duration_s=1.0)
-    _fill_report(report, observer, ResourceMonitor())
+    fill_report(report, observer, ResourceMonitor())
     assert report.frames_read == 5 and report.posed_fraction == pytest.approx(3 / 5)
     lat = report.pose_latency_ms
     assert lat["n"] == 3 and 0 <= lat["p50"] <= lat["p99"] <= lat["max"]
@@ -68,11 +69,11 @@ def test_the_first_pose_of_each_frame_is_kept_and_frames_ingest_dropped_count_as
 
 
 def test_no_ingest_eos_counts_the_frames_seen_and_a_stage_without_eos_reports_none():
-    observer = _Observer(last_stage="ba")
+    observer = Observer(last_stage="ba")
     for seq in range(4):
         _deliver(observer, _frame(seq))
     report = RunReport("synth:", "cam0", ["ingest", "features", "ba"], [])
-    _fill_report(report, observer, ResourceMonitor())
+    fill_report(report, observer, ResourceMonitor())
     assert report.frames_read == 4 and report.posed_fraction == 0.0 and report.pose_latency_ms is None
     assert report.drops == {"ingest": None, "features": None, "ba": None}
 

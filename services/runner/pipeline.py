@@ -17,16 +17,15 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
 from tqdm import tqdm
 
 from ..common import keys
-from ..common.bus import Bus, Delivery
+from ..common.bus import Bus
 from ..common.config import BusSettings
 from ..common.errors import KmVipeError
-from ..common.rotations import is_rigid
-from ..common.schema import Credit, Eos, Frame, Keyframe, Poses
+from ..common.schema import Credit
 from . import children as kids
+from .observer import Observer, fill_report, settle
 from .outputs import write_live, write_outputs
 from .rerun_log import RerunSettings
 from .rerun_recorder import open_recorder
@@ -97,60 +96,6 @@ class RunReport:
     settings: dict = field(default_factory=dict)  # "run": RunSettings; "services": each one's (settings_used.py)
     stopped_by: str | None = None  # the signal (SIGINT, SIGTERM, SIGHUP) that cut the stream short, if one did
     outputs: list[str] = field(default_factory=list)
-
-
-class _Observer:
-    """What the runner sees on the bus (callbacks run on Zenoh threads)."""
-
-    def __init__(self, last_stage: str):
-        self.lock = threading.Lock()
-        self.last_stage = last_stage
-        self.frames = self.keyframes = 0
-        self.last_frame_seq = -1
-        self.poses: dict[int, tuple[int, object]] = {}
-        self.mapped: set[int] = set()  # frames whose pose mapping has revised (a later tracking pose never wins)
-        self.seen_at: dict[int, float] = {}  # frame seq → monotonic time the runner saw it on the bus
-        self.first_pose: dict[int, tuple[float, int, object]] = {}  # seq → (arrival, stamp, pose) of its first pose
-        self.first_tracked: set[int] = set()  # frames whose first pose came from tracking (not mapping)
-        self.first_provisional: set[int] = set()  # ... tracking's rotation-only pose from before the map
-        self.eos: dict[str, Eos] = {}
-        self.eos_at: dict[str, float] = {}
-        self.done = threading.Event()
-        self.last_activity = time.monotonic()
-
-    def on_message(self, delivery: Delivery) -> None:
-        msg = delivery.msg
-        now = time.monotonic()
-        with self.lock:
-            self.last_activity = now
-            if isinstance(msg, Frame):
-                self.frames += 1
-                self.last_frame_seq = msg.seq
-                self.seen_at.setdefault(msg.seq, now)
-            elif isinstance(msg, Keyframe):
-                self.keyframes += 1
-            elif isinstance(msg, Poses):
-                rigid = is_rigid(msg.poses)
-                for seq, stamp, pose, ok in zip(msg.frame_seqs, msg.stamps_ns, msg.poses, rigid):
-                    if not ok:  # no quaternion exists for it: the trajectory files could not be written
-                        log.warning("a pose that is not a rigid transform ignored", extra={"seq": int(seq)})
-                        continue
-                    if int(seq) not in self.first_pose:
-                        self.first_pose[int(seq)] = (now, int(stamp), pose)
-                        if msg.tracked:
-                            self.first_tracked.add(int(seq))
-                        if msg.provisional:
-                            self.first_provisional.add(int(seq))
-                    if msg.tracked and int(seq) in self.mapped:
-                        continue
-                    self.poses[int(seq)] = (int(stamp), pose)
-                    if not msg.tracked:
-                        self.mapped.add(int(seq))
-            elif isinstance(msg, Eos):
-                self.eos[msg.stage] = msg
-                self.eos_at[msg.stage] = now
-                if msg.stage == self.last_stage:
-                    self.done.set()
 
 
 def absolute_source(source: str) -> str:
@@ -232,13 +177,13 @@ def run_pipeline(cfg: RunSettings, on_outputs: Callable[[RunReport], None] | Non
         on_start(report)
     cfg.out.mkdir(parents=True, exist_ok=True)
     endpoint = kids.free_tcp_endpoint()
-    observer = _Observer(last_stage=kids.last_connected_stage(built))
+    observer = Observer(last_stage=kids.last_connected_stage(built))
     monitor = ResourceMonitor()
     started: list[kids.Child] = []
 
     def finish() -> None:
         with observer.lock:  # late messages may still arrive (a --serve run, a signal)
-            _fill_report(report, observer, monitor)
+            fill_report(report, observer, monitor)
             poses, first_poses = dict(observer.poses), dict(observer.first_pose)
             seen_at, first_tracked = dict(observer.seen_at), set(observer.first_tracked)
             provisional = set(observer.first_provisional)
@@ -274,7 +219,7 @@ def run_pipeline(cfg: RunSettings, on_outputs: Callable[[RunReport], None] | Non
     return report
 
 
-def _stream(bus: Bus, cfg: RunSettings, envs: dict[str, dict[str, str]], endpoint: str, observer: _Observer,
+def _stream(bus: Bus, cfg: RunSettings, envs: dict[str, dict[str, str]], endpoint: str, observer: Observer,
             monitor: ResourceMonitor, started: list[kids.Child], stop: StopSignals, report: RunReport) -> bool:
     """Start the services (``envs``: each built one's environment), then ingest, and follow the stream to its end
     (True; ``report.end_reason`` says how it ended) or until a stop signal cuts it short (False)."""
@@ -348,7 +293,7 @@ class _CreditSink:
     """When no features service runs, the runner itself consumes frames and grants credit, so a lossless
     stream still flows (and is counted) without anything being faked downstream."""
 
-    def __init__(self, bus: Bus, cfg: RunSettings, observer: _Observer):
+    def __init__(self, bus: Bus, cfg: RunSettings, observer: Observer):
         self._bus, self._cfg, self._observer = bus, cfg, observer
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="credit-sink", daemon=True)
@@ -367,7 +312,7 @@ class _CreditSink:
         self._thread.join()
 
 
-def _follow(observer: _Observer, monitor: ResourceMonitor, started: list[kids.Child], ingest: kids.Child,
+def _follow(observer: Observer, monitor: ResourceMonitor, started: list[kids.Child], ingest: kids.Child,
             cfg: RunSettings, stop: StopSignals) -> str | None:
     """Show progress until the last stage's end of stream, a dead service or a stall (the reason), or a stop
     signal (None). The services' CPU and memory are sampled on the way (every ``monitor.interval_s``, and once
@@ -399,7 +344,7 @@ def _follow(observer: _Observer, monitor: ResourceMonitor, started: list[kids.Ch
                 return f"error: service '{dead[0].name}' died (exit {dead[0].process.returncode}); see {dead[0].log_path}"
             if idle > cfg.stall_timeout_s:
                 return f"stalled: nothing on the bus for {idle:.0f} s"
-        _settle(observer)
+        settle(observer)
         return observer.eos[observer.last_stage].reason
     finally:
         monitor.sample()  # CPU up to the end of the stream, before anything is stopped
@@ -408,56 +353,8 @@ def _follow(observer: _Observer, monitor: ResourceMonitor, started: list[kids.Ch
         bar.close()
 
 
-def _settle(observer: _Observer, grace_s: float = 2.0) -> None:
-    """Zenoh delivers different keys on different threads: the last stage's EOS can be handled while the last
-    frames' callbacks are still running. Wait (briefly) until the runner has counted every frame ingest says it
-    published, so the summary does not under-count."""
-    deadline = time.monotonic() + grace_s
-    while time.monotonic() < deadline:
-        with observer.lock:
-            ingest_eos = observer.eos.get("ingest")
-            if ingest_eos is None or observer.frames >= ingest_eos.count:
-                return
-        time.sleep(0.02)
-
-
 def _serve_until_stopped(started: list[kids.Child], port: int, stop: StopSignals) -> None:
     """Keep the gateway up until a stop signal (Ctrl-C, SIGTERM, SIGHUP) or until it exits."""
     print(f"serving queries at http://127.0.0.1:{port}/ (viewer) and /docs (API); Ctrl-C to stop", flush=True)
     while all(c.running() for c in started if c.name == "query_api") and not stop.event.wait(0.5):
         pass
-
-
-STAGES = ("ingest", "features", "ba", "mapstore")  # the streaming stages, each ends with an EOS
-
-
-def _fill_report(report: RunReport, observer: _Observer, monitor: ResourceMonitor) -> None:
-    report.frames = observer.frames
-    report.keyframes = observer.keyframes
-    report.posed_frames = len(observer.poses)
-    ingest_eos = observer.eos.get("ingest")
-    if ingest_eos is not None:
-        report.frames_dropped_or_lost = max(0, ingest_eos.seq + 1 - observer.frames)
-    report.fps = report.frames / report.duration_s if report.duration_s else 0.0
-    # live operation: poses as they first arrived, against every frame ingest read
-    report.frames_read = ingest_eos.seq + 1 if ingest_eos is not None else max(observer.last_frame_seq + 1, 0)
-    posed = [seq for seq in observer.first_pose if 0 <= seq < report.frames_read]
-    report.posed_fraction = len(posed) / report.frames_read if report.frames_read else None
-    latencies = [max(0.0, observer.first_pose[seq][0] - observer.seen_at[seq]) * 1e3
-                 for seq in posed if seq in observer.seen_at]
-    if latencies:
-        report.pose_latency_ms = {
-            "p50": round(float(np.percentile(latencies, 50)), 1), "p99": round(float(np.percentile(latencies, 99)), 1),
-            "max": round(float(np.max(latencies)), 1), "n": len(latencies)}
-    ran = set(report.services_ran)
-    report.drops = {stage: (observer.eos[stage].dropped if stage in observer.eos else None)
-                    for stage in STAGES if stage in ran}
-    if "features" in observer.eos:
-        report.codes_skipped = observer.eos["features"].codes_skipped
-        report.frames_lost = observer.eos["features"].lost
-    if "ingest" in observer.eos_at and observer.last_stage in observer.eos_at:
-        report.end_of_stream_s = round(observer.eos_at[observer.last_stage] - observer.eos_at["ingest"], 3)
-    usage = monitor.report()
-    report.services = {name: usage[name] for name in kids.PIPELINE if name in usage}  # in chain order
-    report.rss_total_peak_mb = round(monitor.rss_total_peak_mb, 1)
-    report.rss_mb_at_frames = list(monitor.series)

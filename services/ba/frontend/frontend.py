@@ -17,44 +17,21 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from typing import NamedTuple
 
 import numpy as np
 import torch
 
 from services.ba.core import flow as core_flow
 from services.ba.core import se3
-from services.ba.frontend import edges, init, motion, start, steps
+from services.ba.frontend import init, inputs, motion, start, steps, upkeep
 from services.ba.frontend.frames import FramePoses, FrameRecord
-from services.ba.frontend.graph import GRID, KeyframeGraph, NativeCodes, grid_intrinsics, working_intrinsics
+from services.ba.frontend.graph import KeyframeGraph, grid_intrinsics, working_intrinsics
+from services.ba.frontend.inputs import FrameInput, KeyframeInput
 from services.ba.frontend.params import FrontendParams
 from services.ba.frontend.tracker import Reference, propagate_disparity
 from services.ba.frontend.updates import Update, graph_update, pose_update
 
 logger = logging.getLogger(__name__)
-
-
-class KeyframeInput(NamedTuple):
-    seq: int
-    t_ns: int
-    image: np.ndarray  # (H, W, 3) uint8 RGB or (H, W) grey, working resolution (multiples of 8)
-    intrinsics: np.ndarray  # (4,) float64 working-resolution (fx, fy, cx, cy)
-    codes: np.ndarray | None = None  # (H/8, W/8, K) feature codes in the version all graph codes share
-    disparity_prior: np.ndarray | None = None  # (H/8, W/8) 1/m, 0 = none
-    native_codes: NativeCodes | None = None  # the codes as received, for KeyframeGraph.recode on a new basis
-    pose_guess: torch.Tensor | None = None  # (4, 4) world_from_cam from tracking: a better start than constant velocity
-    realtime: bool = False  # from a live stream: mapping must keep up (cheaper edge flows, FrontendParams.live_*)
-    defer_ba: bool = False  # mapping is behind a live camera: align this keyframe and leave the window BA to a
-    # later one (at most FrontendParams.live_max_deferred in a row), so the graph keeps every keyframe
-
-
-class FrameInput(NamedTuple):
-    seq: int
-    t_ns: int
-    image: np.ndarray  # (h', w') uint8 grey (or RGB), same aspect ratio as the working image
-    tracked: tuple[int, torch.Tensor] | None = None  # (keyframe seq, (4, 4) keyframe_from_cam) from tracking
-    interpolate_only: bool = False  # pose it between its keyframes by time, spend no flow on it
-    tracked_world: torch.Tensor | None = None  # (4, 4) world_from_cam from tracking, when its keyframe is not mapped
 
 
 class Frontend:
@@ -281,17 +258,8 @@ class Frontend:
 
     # --- keyframes -----------------------------------------------------------------------------------
     def _check(self, kf: KeyframeInput) -> np.ndarray:
-        grey = core_flow.to_grey(np.asarray(kf.image))
+        grey, hw = inputs.check_keyframe(kf)
         height, width = grey.shape
-        if height % GRID or width % GRID:
-            raise ValueError(f"keyframe {kf.seq}: working size {width}x{height} is not a multiple of {GRID}")
-        hw = (height // GRID, width // GRID)
-        for name in ("codes", "disparity_prior"):
-            grid = getattr(kf, name)
-            if grid is not None and np.asarray(grid).shape[:2] != hw:
-                raise ValueError(f"keyframe {kf.seq}: {name} grid {np.asarray(grid).shape[:2]} must be {hw}")
-        if np.asarray(kf.intrinsics).shape != (4,):
-            raise ValueError(f"keyframe {kf.seq}: intrinsics (4,) expected")
         if self.graph is None:
             self.graph = KeyframeGraph(grid_intrinsics(kf.intrinsics), hw, self.params.flow, self.device,
                                        self.params.focal_range, self.params.max_step_growth)
@@ -336,64 +304,28 @@ class Frontend:
         return list(range(max(0, n - size), n))
 
     def _add_proximity(self, k: int) -> None:
-        gp, g = self.params.graph, self.graph
-        cands = [c for c in self._window() if c < k - gp.temporal_radius]
-        if not cands:
-            return
-        state = g.stacked(cands + [k])
-        last = len(cands)
-        ii = torch.arange(last, device=self.device)
-        jj = torch.full_like(ii, last)
-        if not (g.predict_flow and gp.proximity_overlap > 0):
-            dist = edges.induced_flow(state.poses, state.disparity, g.intrinsics, ii, jj)
-        else:
-            # a keyframe that turned on the spot has no baseline for its depth; the first keyframe with one to it is
-            # linked to it however far it turned (DIS starts from the flow the map predicts, rotation included),
-            # judged by the flow its depth causes. Not in a driving turn: there every keyframe has a baseline
-            parts = edges.flow_parts(state.poses, state.disparity, g.intrinsics, ii, jj)
-            after_turn = k >= 2 and steps.still_between(g, k - 2, k - 1)  # the first keyframe out of a turn
-            still = torch.tensor([after_turn or steps.turned_on_the_spot(g, c) for c in cands], device=ii.device)
-            turned = still & (parts.rotation >= gp.proximity_max_flow) & (parts.overlap >= gp.proximity_overlap)
-            dist = torch.where(turned, parts.parallax, parts.induced)
-        chosen = edges.proximity_pairs(k, cands, dist.cpu(), gp)
-        g.proximity |= {(g.seqs[a], g.seqs[b]) for a, b in chosen}
+        upkeep.add_proximity(self.graph, k, self._window(), self.params.graph)
 
     def _drop_unconstrained(self, window: list[int]) -> list[int]:
-        """A BA result refused because one keyframe's step jumped: that keyframe's flow does not constrain its
-        pose (under rotation its baseline is tiny), and while it stays every later BA is refused the same way
-        (hand-held yaw: 22 of 27). An interior one becomes a frame again and the BA runs once more; the newest
-        waits until a later keyframe makes it interior. Returns the window after."""
-        g = self.graph
-        seq = g.jumped_seq
-        if seq is None or seq not in g.seqs or g.index(seq) in (window[0], len(g) - 1):
+        """A BA result refused because one keyframe's step jumped (``upkeep.unconstrained``): that keyframe becomes
+        a frame again and the BA runs once more. Returns the window after."""
+        k = upkeep.unconstrained(self.graph, window)
+        if k is None:
             return window
-        k = g.index(seq)
+        seq = upkeep.to_frame(self.graph, self.frames, k)
         logger.info("keyframe the BA cannot constrain turned into a frame", extra={"seq": seq})
-        self.frames.add(FrameRecord(seq, g.stamps[k], g.images[k]))
-        g.remove(k)
-        self.frames.forget_targets(seq)
         window = self._window()
-        g.run(window, g.pairs(window, self.params.graph.temporal_radius), self._ba_params(window))
+        self.graph.run(window, self.graph.pairs(window, self.params.graph.temporal_radius), self._ba_params(window))
         return window
 
     def _remove_redundant(self) -> list[int] | None:
         """If the second-newest keyframe barely moved from the one before, make it a frame again.
         Returns the seqs of the window keyframes after removal, or None when nothing was removed."""
-        g, gp = self.graph, self.params.graph
-        if len(g) < 4:
+        k = upkeep.redundant(self.graph, self.params.graph)
+        if k is None:
             return None
-        k = len(g) - 2
-        state = g.stacked([k - 1, k])
-        dist = edges.induced_flow(state.poses, state.disparity, g.intrinsics, torch.tensor([0, 1]),
-                                  torch.tensor([1, 0]))
-        if float(dist.mean()) >= gp.remove_max_flow:
-            return None
-        seq = g.seqs[k]
-        logger.info("redundant keyframe turned into a frame", extra={"seq": seq, "flow": float(dist.mean())})
-        self.frames.add(FrameRecord(seq, g.stamps[k], g.images[k]))
-        g.remove(k)
-        self.frames.forget_targets(seq)
-        return [g.seqs[i] for i in self._window()]
+        upkeep.to_frame(self.graph, self.frames, k)
+        return [self.graph.seqs[i] for i in self._window()]
 
     def _ba_params(self, window: list[int], base=None):
         if base is None:

@@ -1,0 +1,72 @@
+"""Upkeep of the keyframe graph after a keyframe joins: proximity edges to older window keyframes, and keyframes
+turned back into frames (one the BA cannot constrain, one that barely moved). Functions of the graph, the frames
+and the parameters; the frontend decides when they run."""
+from __future__ import annotations
+
+import logging
+
+import torch
+
+from services.ba.frontend import edges, steps
+from services.ba.frontend.frames import FramePoses, FrameRecord
+from services.ba.frontend.graph import KeyframeGraph
+from services.ba.frontend.params import GraphParams
+
+logger = logging.getLogger(__name__)
+
+
+def add_proximity(g: KeyframeGraph, k: int, window: list[int], gp: GraphParams) -> None:
+    """Proximity edges from keyframe ``k`` to the window keyframes beyond its temporal radius."""
+    cands = [c for c in window if c < k - gp.temporal_radius]
+    if not cands:
+        return
+    state = g.stacked(cands + [k])
+    last = len(cands)
+    ii = torch.arange(last, device=state.poses.device)
+    jj = torch.full_like(ii, last)
+    if not (g.predict_flow and gp.proximity_overlap > 0):
+        dist = edges.induced_flow(state.poses, state.disparity, g.intrinsics, ii, jj)
+    else:
+        # a keyframe that turned on the spot has no baseline for its depth; the first keyframe with one to it is
+        # linked to it however far it turned (DIS starts from the flow the map predicts, rotation included),
+        # judged by the flow its depth causes. Not in a driving turn: there every keyframe has a baseline
+        parts = edges.flow_parts(state.poses, state.disparity, g.intrinsics, ii, jj)
+        after_turn = k >= 2 and steps.still_between(g, k - 2, k - 1)  # the first keyframe out of a turn
+        still = torch.tensor([after_turn or steps.turned_on_the_spot(g, c) for c in cands], device=ii.device)
+        turned = still & (parts.rotation >= gp.proximity_max_flow) & (parts.overlap >= gp.proximity_overlap)
+        dist = torch.where(turned, parts.parallax, parts.induced)
+    chosen = edges.proximity_pairs(k, cands, dist.cpu(), gp)
+    g.proximity |= {(g.seqs[a], g.seqs[b]) for a, b in chosen}
+
+
+def unconstrained(g: KeyframeGraph, window: list[int]) -> int | None:
+    """The keyframe whose step made the last BA result refused, when it is interior to ``window``: its flow does
+    not constrain its pose (under rotation its baseline is tiny), and while it stays every later BA is refused the
+    same way (hand-held yaw: 22 of 27). The newest waits until a later keyframe makes it interior."""
+    seq = g.jumped_seq
+    if seq is None or seq not in g.seqs or g.index(seq) in (window[0], len(g) - 1):
+        return None
+    return g.index(seq)
+
+
+def redundant(g: KeyframeGraph, gp: GraphParams) -> int | None:
+    """The second-newest keyframe when it barely moved from the one before (mean induced flow below
+    ``remove_max_flow``), else None; the caller turns it into a frame."""
+    if len(g) < 4:
+        return None
+    k = len(g) - 2
+    state = g.stacked([k - 1, k])
+    dist = edges.induced_flow(state.poses, state.disparity, g.intrinsics, torch.tensor([0, 1]), torch.tensor([1, 0]))
+    if float(dist.mean()) >= gp.remove_max_flow:
+        return None
+    logger.info("redundant keyframe turned into a frame", extra={"seq": g.seqs[k], "flow": float(dist.mean())})
+    return k
+
+
+def to_frame(g: KeyframeGraph, frames: FramePoses, k: int) -> int:
+    """Keyframe ``k`` leaves the graph and becomes a frame again; returns its seq."""
+    seq = g.seqs[k]
+    frames.add(FrameRecord(seq, g.stamps[k], g.images[k]))
+    g.remove(k)
+    frames.forget_targets(seq)
+    return seq

@@ -1,0 +1,124 @@
+"""What ``kmvipe run`` sees on the bus while a stream runs (frames, poses as they first arrive, each stage's EOS)
+and the live-operation figures of its summary computed from that: posed fraction, capture → pose latency, drops
+per stage, end-of-stream time, each service's CPU and RSS."""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ..common.bus import Delivery
+from ..common.rotations import is_rigid
+from ..common.schema import Eos, Frame, Keyframe, Poses
+from . import children as kids
+from .resources import ResourceMonitor
+
+if TYPE_CHECKING:
+    from .pipeline import RunReport
+
+log = logging.getLogger(__name__)
+
+
+class Observer:
+    """What the runner sees on the bus (callbacks run on Zenoh threads)."""
+
+    def __init__(self, last_stage: str):
+        self.lock = threading.Lock()
+        self.last_stage = last_stage
+        self.frames = self.keyframes = 0
+        self.last_frame_seq = -1
+        self.poses: dict[int, tuple[int, object]] = {}
+        self.mapped: set[int] = set()  # frames whose pose mapping has revised (a later tracking pose never wins)
+        self.seen_at: dict[int, float] = {}  # frame seq → monotonic time the runner saw it on the bus
+        self.first_pose: dict[int, tuple[float, int, object]] = {}  # seq → (arrival, stamp, pose) of its first pose
+        self.first_tracked: set[int] = set()  # frames whose first pose came from tracking (not mapping)
+        self.first_provisional: set[int] = set()  # ... tracking's rotation-only pose from before the map
+        self.eos: dict[str, Eos] = {}
+        self.eos_at: dict[str, float] = {}
+        self.done = threading.Event()
+        self.last_activity = time.monotonic()
+
+    def on_message(self, delivery: Delivery) -> None:
+        msg = delivery.msg
+        now = time.monotonic()
+        with self.lock:
+            self.last_activity = now
+            if isinstance(msg, Frame):
+                self.frames += 1
+                self.last_frame_seq = msg.seq
+                self.seen_at.setdefault(msg.seq, now)
+            elif isinstance(msg, Keyframe):
+                self.keyframes += 1
+            elif isinstance(msg, Poses):
+                rigid = is_rigid(msg.poses)
+                for seq, stamp, pose, ok in zip(msg.frame_seqs, msg.stamps_ns, msg.poses, rigid):
+                    if not ok:  # no quaternion exists for it: the trajectory files could not be written
+                        log.warning("a pose that is not a rigid transform ignored", extra={"seq": int(seq)})
+                        continue
+                    if int(seq) not in self.first_pose:
+                        self.first_pose[int(seq)] = (now, int(stamp), pose)
+                        if msg.tracked:
+                            self.first_tracked.add(int(seq))
+                        if msg.provisional:
+                            self.first_provisional.add(int(seq))
+                    if msg.tracked and int(seq) in self.mapped:
+                        continue
+                    self.poses[int(seq)] = (int(stamp), pose)
+                    if not msg.tracked:
+                        self.mapped.add(int(seq))
+            elif isinstance(msg, Eos):
+                self.eos[msg.stage] = msg
+                self.eos_at[msg.stage] = now
+                if msg.stage == self.last_stage:
+                    self.done.set()
+
+
+def settle(observer: Observer, grace_s: float = 2.0) -> None:
+    """Zenoh delivers different keys on different threads: the last stage's EOS can be handled while the last
+    frames' callbacks are still running. Wait (briefly) until the runner has counted every frame ingest says it
+    published, so the summary does not under-count."""
+    deadline = time.monotonic() + grace_s
+    while time.monotonic() < deadline:
+        with observer.lock:
+            ingest_eos = observer.eos.get("ingest")
+            if ingest_eos is None or observer.frames >= ingest_eos.count:
+                return
+        time.sleep(0.02)
+
+
+STAGES = ("ingest", "features", "ba", "mapstore")  # the streaming stages, each ends with an EOS
+
+
+def fill_report(report: "RunReport", observer: Observer, monitor: ResourceMonitor) -> None:
+    report.frames = observer.frames
+    report.keyframes = observer.keyframes
+    report.posed_frames = len(observer.poses)
+    ingest_eos = observer.eos.get("ingest")
+    if ingest_eos is not None:
+        report.frames_dropped_or_lost = max(0, ingest_eos.seq + 1 - observer.frames)
+    report.fps = report.frames / report.duration_s if report.duration_s else 0.0
+    # live operation: poses as they first arrived, against every frame ingest read
+    report.frames_read = ingest_eos.seq + 1 if ingest_eos is not None else max(observer.last_frame_seq + 1, 0)
+    posed = [seq for seq in observer.first_pose if 0 <= seq < report.frames_read]
+    report.posed_fraction = len(posed) / report.frames_read if report.frames_read else None
+    latencies = [max(0.0, observer.first_pose[seq][0] - observer.seen_at[seq]) * 1e3
+                 for seq in posed if seq in observer.seen_at]
+    if latencies:
+        report.pose_latency_ms = {
+            "p50": round(float(np.percentile(latencies, 50)), 1), "p99": round(float(np.percentile(latencies, 99)), 1),
+            "max": round(float(np.max(latencies)), 1), "n": len(latencies)}
+    ran = set(report.services_ran)
+    report.drops = {stage: (observer.eos[stage].dropped if stage in observer.eos else None)
+                    for stage in STAGES if stage in ran}
+    if "features" in observer.eos:
+        report.codes_skipped = observer.eos["features"].codes_skipped
+        report.frames_lost = observer.eos["features"].lost
+    if "ingest" in observer.eos_at and observer.last_stage in observer.eos_at:
+        report.end_of_stream_s = round(observer.eos_at[observer.last_stage] - observer.eos_at["ingest"], 3)
+    usage = monitor.report()
+    report.services = {name: usage[name] for name in kids.PIPELINE if name in usage}  # in chain order
+    report.rss_total_peak_mb = round(monitor.rss_total_peak_mb, 1)
+    report.rss_mb_at_frames = list(monitor.series)
