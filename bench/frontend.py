@@ -101,7 +101,9 @@ def run_frontend(frames: list[SourceFrame], focal: float | None = None,
             lite = cv2.resize(work, (work.shape[1] // 2, work.shape[0] // 2), interpolation=cv2.INTER_AREA)
             tracked = None if anchor is None else anchor[:2]
             world = anchor[2] if anchor is not None and live else None
-            keep(frontend.add_frame(FrameInput(frame.index, frame.t_ns, lite, tracked, tracked_world=world)))
+            flow = None if anchor is None or not live else anchor[3]
+            keep(frontend.add_frame(FrameInput(frame.index, frame.t_ns, lite, tracked, tracked_world=world,
+                                               tracked_flow=flow, tracked_ref=None if anchor is None else anchor[0])))
             return
         guess = None
         if anchor is not None:  # as the ba service does: start mapping where tracking put it
@@ -191,9 +193,9 @@ def main() -> None:
 
 
 def _track(tracker: Tracker | None, frame: SourceFrame, work: np.ndarray, intrinsics: np.ndarray,
-           first: dict[int, tuple[int, np.ndarray]]) -> tuple[int, torch.Tensor, torch.Tensor] | None:
+           first: dict[int, tuple[int, np.ndarray]]) -> tuple | None:
     """The tracking thread's work for one frame: its pose at once, and the anchor mapping will use
-    (reference keyframe seq, reference_from_cam, world_from_cam)."""
+    (reference keyframe seq, reference_from_cam, world_from_cam, tracking's flow)."""
     if tracker is None:
         return None
     lite, lite_k = half_size(work, intrinsics)
@@ -203,7 +205,7 @@ def _track(tracker: Tracker | None, frame: SourceFrame, work: np.ndarray, intrin
     first.setdefault(frame.index, (frame.t_ns, out.pose.numpy()))
     if not out.ok:
         return None
-    return out.ref_seq, se3.inverse(tracker.reference.pose) @ out.pose, out.pose
+    return out.ref_seq, se3.inverse(tracker.reference.pose) @ out.pose, out.pose, (out.target, out.confidence)
 
 
 def _instrument() -> dict[str, list]:

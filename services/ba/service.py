@@ -72,8 +72,9 @@ class BaState:
     merged: int = 0  # real-time keyframes merged as frames because mapping was behind
     merged_in_a_row: int = 0
     dropped: int = 0  # frames the inboxes dropped by the real-time policy (set at end of stream)
-    # frame seq -> (keyframe seq, keyframe_from_cam) from the tracking thread, which fills it
-    anchors: dict[int, tuple[int, torch.Tensor, torch.Tensor]] = field(default_factory=dict)
+    # frame seq -> (keyframe seq, keyframe_from_cam, world_from_cam, tracking's flow or None) from the tracking
+    # thread, which fills it (a checkpoint of an earlier version holds the first three only)
+    anchors: dict[int, tuple] = field(default_factory=dict)
     ended_upto: int = -1  # the last frame seq of a stream that ended: anything up to it comes again, not anew
     final_outputs: Outputs = field(default_factory=list)  # the last stream's final graph, poses and EOS
 
@@ -114,14 +115,14 @@ def _pose_guess(state: BaState, seq: int) -> torch.Tensor | None:
     anchor = _take_anchor(state, seq)
     if anchor is None:
         return None
-    ref_seq, ref_from_cam, world_from_cam = anchor
+    ref_seq, ref_from_cam, world_from_cam = anchor[:3]
     graph = state.frontend.graph
     if graph is not None and ref_seq in graph.seqs:
         return graph.poses[graph.index(ref_seq)] @ ref_from_cam.to(graph.device)
     return world_from_cam
 
 
-def _take_anchor(state: BaState, seq: int) -> tuple[int, torch.Tensor, torch.Tensor] | None:
+def _take_anchor(state: BaState, seq: int) -> tuple | None:
     """Pop frame ``seq``'s anchor, forgetting older ones mapping never asked for (frames dropped on the way)."""
     anchor = state.anchors.pop(seq, None)
     if len(state.anchors) > 64:
@@ -172,7 +173,9 @@ def handle_frame_lite(state: BaState, msg: FrameLite | Keyframe, cfg: BaSettings
     # latency bounded) is posed between its keyframes by time alone: aligning it by flow would put mapping
     # behind the camera
     cheap = msg.realtime and anchor is None
-    update = state.frontend.add_frame(FrameInput(msg.seq, msg.t_ns, msg.image, tracked, cheap, world))
+    flow = anchor[3] if msg.realtime and anchor is not None and len(anchor) > 3 else None
+    update = state.frontend.add_frame(FrameInput(msg.seq, msg.t_ns, msg.image, tracked, cheap, world, flow,
+                                                 None if anchor is None else anchor[0]))
     return outputs_of(state.frontend, msg, update, final=False)
 
 

@@ -33,7 +33,7 @@ class TrackingLoop:
     """Runs a tracker on a thread over ``inbox`` (frame_lite and keyframe messages of one stream)."""
 
     def __init__(self, tracker: LocalTracker | TrackerProcess, bus: Bus, inbox: Inbox, stream: str,
-                 anchors: dict[int, tuple[int, torch.Tensor, torch.Tensor]], niceness: int = 0):
+                 anchors: dict[int, tuple], niceness: int = 0):
         self.tracker, self.bus, self.inbox, self.stream, self.niceness = tracker, bus, inbox, stream, niceness
         self._lock = threading.Lock()
         self._pending_ref: Reference | None = None
@@ -41,9 +41,10 @@ class TrackingLoop:
         self.tracked = 0  # frames posed by tracking in this stream
         self.not_rigid = 0  # tracked poses that were not rigid transforms (not published)
         self.last_seq = -1  # highest seq handled (for progress reports)
-        # seq -> (reference keyframe seq, (4, 4) reference_from_cam, (4, 4) world_from_cam): mapping anchors the
-        # frame there instead of aligning it again, and starts a keyframe from it (dict operations are atomic;
-        # mapping pops what it uses, reset clears the rest)
+        # seq -> (reference keyframe seq, (4, 4) reference_from_cam, (4, 4) world_from_cam, tracking's flow or
+        # None): mapping anchors the frame there instead of aligning it again, solves it again with that flow once
+        # the keyframe is refined, and starts a keyframe from it (dict operations are atomic; mapping pops what
+        # it uses, reset clears the rest)
         self.anchors = anchors
         self._skipped: deque[FrameLite | Keyframe] = deque()  # frames the inbox dropped: predicted poses only
         inbox.on_drop = lambda delivery: self._skipped.append(delivery.msg)
@@ -147,7 +148,8 @@ class TrackingLoop:
             return
         self.tracked += 1
         if out.ok:
-            self.anchors[msg.seq] = (out.ref_seq, torch.from_numpy(out.ref_from_cam), torch.from_numpy(out.pose))
+            flow = None if out.flow is None else tuple(torch.from_numpy(a) for a in out.flow)
+            self.anchors[msg.seq] = (out.ref_seq, torch.from_numpy(out.ref_from_cam), torch.from_numpy(out.pose), flow)
         self._publish(msg, out.pose, provisional=out.ref_seq < 0)
         if not out.ok and out.ref_seq >= 0:
             log.info("frame kept its predicted pose (weak flow)", extra={"stream": self.stream, "seq": msg.seq})

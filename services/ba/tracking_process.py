@@ -38,6 +38,8 @@ class Step(NamedTuple):
     ok: bool  # aligned (False: the constant-velocity prediction, or a provisional rotation before the map)
     ref_seq: int  # the keyframe it was aligned to (-1: before the map, provisional)
     ref_from_cam: np.ndarray | None  # (4, 4) float64 relative to that keyframe, when ``ok``
+    flow: tuple[np.ndarray, np.ndarray] | None = None  # tracking's flow from that keyframe, when ``ok``: (h, w, 2)
+    # float32 grid targets, (h, w) float32 confidence (mapping solves the frame again with it, frames.py)
 
 
 def step(tracker: Tracker, is_keyframe: bool, seq: int, t_ns: int, image: np.ndarray,
@@ -56,7 +58,8 @@ def step(tracker: Tracker, is_keyframe: bool, seq: int, t_ns: int, image: np.nda
         ref_from_cam = (se3.inverse(tracker.reference.pose) @ out.pose).cpu().numpy()
         if is_keyframe:  # tracking moves on to it now, whether or not mapping keeps up
             tracker.promote(seq, t_ns, grey, out.pose)  # its reference image at working resolution
-    return Step(out.pose.detach().cpu().numpy().astype(np.float64), out.ok, out.ref_seq, ref_from_cam)
+    flow = (out.target.numpy(), out.confidence.numpy()) if out.ok and out.target is not None else None
+    return Step(out.pose.detach().cpu().numpy().astype(np.float64), out.ok, out.ref_seq, ref_from_cam, flow)
 
 
 def half_size(grey: np.ndarray, intrinsics: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -25,7 +25,7 @@ from services.ba.core import flow as core_flow
 from services.ba.core import se3
 from services.ba.frontend import init, inputs, motion, start, steps, upkeep
 from services.ba.frontend.frames import FramePoses, FrameRecord
-from services.ba.frontend.graph import KeyframeGraph, grid_intrinsics, working_intrinsics
+from services.ba.frontend.graph import KeyframeGraph, Targets, grid_intrinsics, working_intrinsics
 from services.ba.frontend.inputs import FrameInput, KeyframeInput
 from services.ba.frontend.params import FrontendParams
 from services.ba.frontend.tracker import Reference, propagate_disparity
@@ -154,6 +154,10 @@ class Frontend:
         if self.graph is not None and frame.seq in self.graph.seqs:
             raise ValueError(f"frame {frame.seq} is already a keyframe")
         record = FrameRecord(frame.seq, frame.t_ns, image, interpolate_only=frame.interpolate_only)
+        ref = frame.tracked[0] if frame.tracked is not None else frame.tracked_ref
+        if frame.tracked_flow is not None and ref is not None:  # kept to solve the frame again (frames.py)
+            record.tracked_ref = ref
+            record.targets[ref] = Targets(*frame.tracked_flow)
         if frame.tracked is not None and self.graph is not None and frame.tracked[0] in self.graph.seqs:
             # tracking already aligned it to a keyframe: anchored there, it moves with every BA of that keyframe
             # and needs no flow of its own (its pose went out when it was tracked)
@@ -226,29 +230,48 @@ class Frontend:
                      self._ba_params(everything, self.params.global_ba), should_stop) is not None
 
     def _align_at_end(self, deadline: float) -> None:
-        """Frames still held are aligned to their final keyframes with mapping's flow, oldest first, until
-        ``deadline`` (time.monotonic()): those no flow of mapping's measured yet (tracking's or interpolated poses),
-        then those measured while the focal was still settling, more than ``realign_focal_change`` off the final
-        one (their flow is kept: only the solve runs again; a 40 deg lens whose calibration started 18 % short:
+        """Frames still held are aligned to their final keyframes until ``deadline`` (time.monotonic()): first
+        every tracked frame solved again with tracking's flow (``FramePoses.resolve``, ~10 ms each), the frames
+        tracking skipped interpolated again between their neighbours, then, oldest first, those no flow of
+        mapping's measured yet (tracking's or interpolated poses) and those measured while
+        the focal was still settling, more than ``realign_focal_change`` off the final one, with mapping's flow
+        (their flow is kept: only the solve runs again; a 40 deg lens whose calibration started 18 % short:
         2.5 -> 1.2 % of path, docs/BENCHMARKS.md)."""
         g = self.graph
-        todo = self.frames.unmeasured() + self.frames.stale_focal(float(g.intrinsics[0]),
-                                                                   self.params.realign_focal_change)
-        for done, seq in enumerate(todo):
+        resolve = self.frames.resolvable(again=True)
+        interpolated = self.frames.interpolated()
+        steps = [("resolve", s) for s in resolve] + [("interpolate", s) for s in interpolated]
+        # mapping's flow where there was none first: a frame solved with tracking's is within ~2 mm of it already
+        tracked = [s for s in self.frames.unmeasured() if s not in set(interpolated)]
+        steps += [("measure", s) for s in interpolated + tracked]
+        steps += [("measure", s) for s in self.frames.stale_focal(float(g.intrinsics[0]),
+                                                                  self.params.realign_focal_change)]
+        for done, (step, seq) in enumerate(steps):
             if time.monotonic() >= deadline:
                 logger.info("end of stream: frames left with their earlier poses (time bound)",
-                            extra={"aligned": done, "left": len(todo) - done})
+                            extra={"aligned": done, "left": len(steps) - done})
                 break
-            self.frames.measure(g, seq)
+            if step == "resolve":
+                self.frames.resolve(g, seq)
+            elif step == "interpolate":  # between its neighbours as they are now, solved again just before
+                self.frames.align(g, seq)
+            else:
+                self.frames.measure(g, seq)
 
     def refine_frame(self) -> Update:
-        """Mapping's spare time on a live stream: the oldest frame whose pose no flow of mapping's measured yet
-        (anchored where tracking put it, or interpolated by time), and that has keyframes on both sides, aligned to
-        them with mapping's own flow; its revised pose in the update (empty when there is none). Tracking's cheap
-        flow leaves such frames ~2 cm off on the synthetic world where keyframes are at 3 mm."""
+        """Mapping's spare time on a live stream, one frame per call; its revised pose in the update (empty when
+        there is nothing to do). First a tracked frame whose reference keyframe has left the BA window (its depth
+        settled), solved again with tracking's flow (~10 ms); else the oldest frame whose pose no flow of mapping's
+        measured yet (anchored where tracking put it, or interpolated by time), with keyframes on both sides,
+        aligned to them with mapping's own flow (~100 ms). Tracking's cheap flow leaves such frames ~2 cm off on the
+        synthetic world where keyframes are at 3 mm."""
         g = self.graph
         if g is None or not self.initialised:
             return Update()
+        settled = self.frames.resolvable(before=g.seqs[self._window()[0]])
+        if settled:
+            self.frames.resolve(g, settled[0])
+            return Update(poses=pose_update(g, self.frames, settled[:1]))
         last = g.seqs[-1]
         seq = next((s for s in self.frames.unmeasured() if s < last), None)
         if seq is None:

@@ -53,6 +53,8 @@ class Tracked(NamedTuple):
     pose: torch.Tensor  # (4, 4) float64 world_from_cam
     ref_seq: int  # the keyframe it was aligned to
     ok: bool  # False: too little flow to align; the pose is the constant-velocity prediction
+    target: torch.Tensor | None = None  # (h, w, 2) float32 CPU: where the reference's grid cells landed (grid coords)
+    confidence: torch.Tensor | None = None  # (h, w) float32 CPU: their confidence (flow and photometric agreement)
 
 
 MAX_PROMOTED = 64  # keyframe poses tracking remembers, to correct its carried-over reference by mapping's
@@ -276,16 +278,19 @@ class Tracker:
         scale = self.params.flow_downscale
         init = induced_flow_field(ref.pose, guess, ref.disparity, ref.intrinsics, GRID // scale)
         ft = core_flow.flow_targets(small, grey, self.flow, init)
-        confidence = ft.confidence * photometric_agreement(small, grey, ft.target, self.flow.grid)
-        if ref.known is not None:  # a carried-over depth says nothing where no point landed
-            confidence = confidence * ref.known.cpu().numpy()
+        measured = torch.from_numpy((ft.confidence * photometric_agreement(small, grey, ft.target, self.flow.grid))
+                                    .astype(np.float32))
+        # a carried-over depth says nothing where no point landed; the flow there is still good against a mapped one
+        confidence = measured if ref.known is None else measured * ref.known.cpu().to(torch.float32)
         target = torch.from_numpy(ft.target)[None].to(ref.pose.device)
-        conf = torch.from_numpy(confidence.astype(np.float32))[None].to(ref.pose.device)
+        conf = confidence[None].to(ref.pose.device)
         res = motion.align(guess, ref.pose[None], ref.disparity[None], target, conf, ref.intrinsics, self.params)
         cells = ref.disparity.numel()
         ok = (res.ok and res.weight >= TRACK_MIN_SHARE * cells and res.rms <= TRACK_MAX_RMS
               and bool(torch.isfinite(res.pose).all()))
         pose = res.pose if ok else guess
-        out = Tracked(seq, stamp, pose, ref.seq, ok)
+        # the flow goes with the pose: mapping can solve the frame again against the reference's refined depth
+        # without a flow of its own (frames.FramePoses.align)
+        out = Tracked(seq, stamp, pose, ref.seq, ok, torch.from_numpy(ft.target), measured)
         self._history = (self._history + [out])[-2:]
         return out
