@@ -5,7 +5,6 @@ from __future__ import annotations
 import threading
 
 import numpy as np
-import pytest
 
 from services.ba import service
 from services.ba.settings import BaSettings

@@ -10,7 +10,6 @@ import pytest
 import torch
 
 from services.ba.core import se3
-from services.ba.core.params import FlowParams
 from services.ba.frontend.graph import GRID, grid_intrinsics
 from services.ba.frontend.params import MotionParams
 from services.ba.settings import BaSettings

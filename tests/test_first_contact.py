@@ -126,6 +126,12 @@ def test_a_run_from_any_directory_reads_and_writes_there_only(tmp_path):
     out = work / "out"
     summary = json.loads((out / "summary.json").read_text())
     assert summary["frames"] == n and summary["end_reason"] == "end", summary
+    # the first thing it says: which queries its map supports, as the summary records them (the oracle's text
+    # vectors here; without them, why not: tests/test_text_profile.py)
+    first = result.stdout.splitlines()[0]
+    assert first.startswith("kmvipe: semantic queries of this map: text: available"), result.stdout
+    queries = summary["queries"]
+    assert queries["text"] is True and queries["example"] is True and queries["text_why"] in first
     assert summary["source"] == str(work / "frames")
     assert summary["ate_rmse_sim3"] is not None  # the groundtruth.txt beside the relative source was found
     used = summary["settings"]  # what each service ran with: the user's environment, then the runner's overrides

@@ -3,7 +3,6 @@ starts (a missing one ends the run in seconds with the exact pull commands), and
 the registered models in an air-gapped folder, a full run whose map answers a text query over HTTP."""
 from __future__ import annotations
 
-import json
 import os
 import subprocess
 import sys
@@ -60,18 +59,7 @@ def test_missing_models_end_the_run_in_seconds_with_the_pull_commands(tmp_path):
     assert not (tmp_path / "out").exists(), "nothing may start before the models are there"
 
 
-@pytest.mark.slow
-def test_a_plain_run_says_which_queries_its_map_supports(tmp_path):
-    done = subprocess.run([str(KMVIPE), "run", "synth:frames=12,width=256,height=192", "--out", "out",
-                           "--skip", "query_api"], cwd=tmp_path,
-                          env=_user_env(KMVIPE_FEATURES_BACKBONE=ORACLE_BACKBONE,
-                                        KMVIPE_FEATURES_ORACLE_SOURCE="synth:frames=12,width=256,height=192"),
-                          capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0, done.stdout + done.stderr
-    first = done.stdout.splitlines()[0]
-    assert first.startswith("kmvipe: semantic queries of this map: text: unavailable")
-    queries = json.loads((tmp_path / "out" / "summary.json").read_text())["queries"]
-    assert queries["text"] is False and queries["example"] is True and queries["text_why"] in first
+# A plain run (no --text) saying which queries its map supports: tests/test_first_contact.py checks it on its run.
 
 
 @pytest.mark.slow
