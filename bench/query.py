@@ -77,7 +77,7 @@ class _MapState:
         from services.mapstore.config import MapParams
         from services.mapstore.core.fusion import FusedVoxels
         from services.mapstore.core.index import ScoringIndex
-        from services.mapstore.state import AnswerCache
+        from services.mapstore.answer_cache import AnswerCache
 
         n = len(xyz)
         fused = FusedVoxels(np.arange(n, dtype=np.int64), ijk, xyz.astype(np.float64), codes, rgb, np.ones(n), np.ones(n, np.int64))

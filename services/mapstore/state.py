@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections import OrderedDict
 from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Iterator
@@ -41,6 +40,7 @@ from typing import TYPE_CHECKING, Iterator
 import cv2
 import numpy as np
 
+from services.mapstore.answer_cache import AnswerCache
 from services.mapstore.config import MapstoreSettings
 from services.mapstore.core.geometry import sample_cell_colours
 from services.mapstore.core.keyframe import KeyframeContent, KeyframeDepth
@@ -67,33 +67,6 @@ def make_thumbnail(image: np.ndarray, side: int, quality: int) -> Thumbnail | No
     small = cv2.resize(image, size, interpolation=cv2.INTER_AREA) if scale < 1.0 else image
     ok, buf = cv2.imencode(".jpg", cv2.cvtColor(small, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, quality])
     return Thumbnail(buf.tobytes(), size[0], size[1]) if ok else None
-
-
-class AnswerCache:
-    """What recent query vectors found (``services.mapstore.queries``) on one scoring index. An index lives for one
-    map revision under one basis, so a finding is never reused on a map it was not computed on. Used under the
-    map state's lock."""
-
-    def __init__(self, capacity: int):
-        self.capacity = capacity
-        self._index: object | None = None
-        self._found: OrderedDict[tuple, object] = OrderedDict()
-
-    def get(self, index, key: tuple | None):
-        if key is None or index is not self._index or key not in self._found:
-            return None
-        self._found.move_to_end(key)
-        return self._found[key]
-
-    def put(self, index, key: tuple | None, found) -> None:
-        if key is None or self.capacity <= 0:
-            return
-        if index is not self._index:  # a new map revision or basis: what was found before is stale
-            self._index = index
-            self._found.clear()
-        self._found[key] = found
-        while len(self._found) > self.capacity:
-            self._found.popitem(last=False)
 
 
 class MapState:
