@@ -266,20 +266,39 @@ def test_spare_time_solves_settled_tracked_frames_first(tracked_live, monkeypatc
 
 
 def test_end_of_stream_solves_every_tracked_frame_again_before_measuring(tracked_live):
-    """The cheap solves first (every tracked frame, ~10 ms each), then mapping's flows as the time bound allows."""
+    """The cheap solves first (every tracked frame, ~10 ms each), then mapping's flows as the time bound allows,
+    where the evidence spans the most frames first (far from tracking's reference, or posed by time over a gap)."""
     world, fe = tracked_live
     done = _copy(fe, final_align_s=1e9)
-    order = []
+    order, measured = [], []
     for step in ("resolve", "measure"):
         original = getattr(done.frames, step)
         setattr(done.frames, step, lambda g, seq, step=step, original=original: order.append(step) or original(g, seq))
+    original_measure = done.frames.measure
+    done.frames.measure = lambda g, seq: measured.append(seq) or original_measure(g, seq)
     tracked = fe.frames.resolvable()
+    spans = fe.frames.flow_spans(fe.graph, fe.frames.unmeasured())
+    assert {spans[s] for s in tracked} == {1, 2, 3} and {spans[s] for s in fe.frames.interpolated()} <= {2, 3}
     done.finish()
     assert order[:len(tracked)] == ["resolve"] * len(tracked) and set(order[len(tracked):]) == {"measure"}
     assert all(done.frames.frames[s].resolved and done.frames.frames[s].measured for s in tracked)
+    assert measured == sorted(spans, key=lambda s: (-spans[s], s))  # the longest evidence first
     no_time = _copy(fe, final_align_s=0.0)
     no_time.finish()
     assert _frame_ate(world, done) < 0.5 * _frame_ate(world, no_time)
+    # whatever the time bound, the frames tracking skipped end between their neighbours' final poses
+    from services.ba.frontend.frames import interpolate
+
+    g, frames = no_time.graph, no_time.frames
+    skipped = [s for s in frames.interpolated() if g.seqs[0] < s < g.seqs[-1]]
+    assert skipped
+    for seq in skipped:
+        ends = [(g.stamps[g.index(s)], g.poses[g.index(s)]) if s in g.seqs else (frames.frames[s].stamp,
+                                                                                 frames.pose(g, s))
+                for s in (seq - 1, seq + 1)]
+        stamp = frames.frames[seq].stamp
+        expected = interpolate(ends[0][1], ends[1][1], (stamp - ends[0][0]) / (ends[1][0] - ends[0][0]))
+        torch.testing.assert_close(frames.pose(g, seq), expected)
 
 
 def _errors_of(world, fe: Frontend, seqs: list[int]) -> float:

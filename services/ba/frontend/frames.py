@@ -12,6 +12,7 @@ tracked frames from 17 to 6 mm, at ~10 ms a frame instead of ~100 ms for two flo
 from __future__ import annotations
 
 import logging
+from bisect import bisect_left
 from dataclasses import dataclass, field, replace
 
 import cv2
@@ -139,21 +140,57 @@ class FramePoses:
                       if f.anchor is not None and not f.measured and f.tracked_ref in f.targets
                       and (again or not f.resolved) and (before is None or f.tracked_ref < before))
 
-    def _between_neighbours(self, graph: KeyframeGraph, frame: FrameRecord) -> torch.Tensor | None:
-        """A frame no flow posed (tracking had no time for it), interpolated by time between the nearest poses on
-        either side that flow did give: keyframes, and frames tracked or aligned. On a live stream tracking skips
-        frames, often every other one, so those are a frame period apart where the keyframes are ~25 (the
-        synthetic orbit at 30 Hz: 50-80 mm off between keyframes). None when one side has no such pose."""
+    def _flowed(self, graph: KeyframeGraph) -> list[int]:
+        """Seqs whose pose flow gave, ascending: the keyframes held and the frames tracked or aligned to them."""
         held = set(graph.seqs)
-        flowed = [s for s, f in self.frames.items() if not f.interpolate_only and f.anchor in held]
-        before = max((s for s in graph.seqs + flowed if s < frame.seq), default=None)
-        after = min((s for s in graph.seqs + flowed if s > frame.seq), default=None)
-        if before is None or after is None:
+        return sorted(held | {s for s, f in self.frames.items() if not f.interpolate_only and f.anchor in held})
+
+    def _between_neighbours(self, graph: KeyframeGraph, frame: FrameRecord,
+                            flowed: list[int] | None = None) -> torch.Tensor | None:
+        """A frame no flow posed (tracking had no time for it), interpolated by time between the nearest poses on
+        either side that flow did give (``flowed``, from :meth:`_flowed`): keyframes, and frames tracked or
+        aligned. On a live stream tracking skips frames, often every other one, so those are a frame period apart
+        where the keyframes are ~25 (the synthetic orbit at 30 Hz: 50-80 mm off between keyframes). None when
+        one side has no such pose."""
+        flowed = self._flowed(graph) if flowed is None else flowed
+        i = bisect_left(flowed, frame.seq)
+        if i == 0 or i >= len(flowed) or flowed[i] == frame.seq:
             return None
-        ends = [(graph.stamps[graph.index(s)], graph.poses[graph.index(s)]) if s in held
-                else (self.frames[s].stamp, self.pose(graph, s)) for s in (before, after)]
+        ends = [(graph.stamps[graph.index(s)], graph.poses[graph.index(s)]) if s in graph.seqs
+                else (self.frames[s].stamp, self.pose(graph, s)) for s in (flowed[i - 1], flowed[i])]
         span = max(ends[1][0] - ends[0][0], 1)
         return interpolate(ends[0][1], ends[1][1], (frame.stamp - ends[0][0]) / span)
+
+    def interpolate_again(self, graph: KeyframeGraph) -> list[int]:
+        """Every frame posed by time, interpolated again between its neighbours as they are now (after they were
+        solved again or measured); no flow, ~1 ms a frame. Returns their seqs."""
+        flowed = self._flowed(graph)
+        done = []
+        for seq in self.interpolated():
+            frame = self.frames[seq]
+            pose = self._between_neighbours(graph, frame, flowed)
+            a = self.bracket(graph, seq)[0]
+            if pose is not None and a is not None:
+                self._anchor(graph, frame, a, pose)
+                done.append(seq)
+        return done
+
+    def flow_spans(self, graph: KeyframeGraph, seqs: list[int]) -> dict[int, int]:
+        """For each frame in ``seqs``, how many frames its pose's evidence spans: from tracking's reference keyframe
+        for a tracked frame (DIS over a longer way, fewer cells left: 30 frames from its reference a synthetic frame
+        keeps 3 % of them), between the flow-posed frames or keyframes around it for one posed by time."""
+        flowed = self._flowed(graph)
+        spans = {}
+        for seq in seqs:
+            frame = self.frames[seq]
+            if not frame.interpolate_only:
+                spans[seq] = seq - frame.tracked_ref if frame.tracked_ref is not None else 0
+                continue
+            i = bisect_left(flowed, seq)
+            before = flowed[i - 1] if i > 0 else seq
+            after = flowed[i] if i < len(flowed) else seq
+            spans[seq] = after - before
+        return spans
 
     def interpolated(self) -> list[int]:
         """Frames posed by time alone (no flow of tracking's or mapping's), oldest first."""
