@@ -126,6 +126,7 @@ class LocalTracker:
 def _serve(conn, make_tracker: Callable[[], Tracker], niceness: int, threads: int) -> None:
     """The child: answer (call, args) requests until the pipe closes."""
     torch.set_num_threads(threads)
+    cv2.setNumThreads(threads)  # DIS too: OpenCV's own pool would spread each flow over every core
     try:  # absolute, not relative to the thread that started it
         os.setpriority(os.PRIO_PROCESS, 0, niceness)
     except (AttributeError, OSError):  # not Linux, or a higher priority than allowed: the inherited one stands
