@@ -12,6 +12,7 @@ tracked frames from 17 to 6 mm, at ~10 ms a frame instead of ~100 ms for two flo
 from __future__ import annotations
 
 import logging
+import time
 from bisect import bisect_left
 from dataclasses import dataclass, field, replace
 
@@ -191,6 +192,32 @@ class FramePoses:
             after = flowed[i] if i < len(flowed) else seq
             spans[seq] = after - before
         return spans
+
+    def align_at_end(self, graph: KeyframeGraph, deadline: float, realign_focal_change: float) -> None:
+        """End of stream: frames still held aligned to their final keyframes until ``deadline``
+        (time.monotonic()). First every tracked frame solved again with tracking's flow (:meth:`resolve`, ~10 ms
+        each); then, with mapping's flow, those no flow of mapping's measured yet, the longest evidence first
+        (:meth:`flow_spans`: the synthetic orbit's tracked frames are 40-90 mm off 20-35 frames from their
+        reference, within ~2 mm of mapping's flow close to it), and those measured while the focal was still
+        settling, more than ``realign_focal_change`` off the final one (their flow is kept: only the solve runs
+        again; a 40 deg lens whose calibration started 18 % short: 2.5 -> 1.2 % of path, docs/BENCHMARKS.md).
+        Last, whatever the time, the frames tracking skipped are interpolated again between their neighbours as
+        those now are (no flow)."""
+        unmeasured = self.unmeasured()
+        spans = self.flow_spans(graph, unmeasured)
+        steps = [("resolve", s) for s in self.resolvable(again=True)]
+        steps += [("measure", s) for s in sorted(unmeasured, key=lambda s: (-spans[s], s))]
+        steps += [("measure", s) for s in self.stale_focal(float(graph.intrinsics[0]), realign_focal_change)]
+        for done, (step, seq) in enumerate(steps):
+            if time.monotonic() >= deadline:
+                logger.info("end of stream: frames left with their earlier poses (time bound)",
+                            extra={"aligned": done, "left": len(steps) - done})
+                break
+            if step == "resolve":
+                self.resolve(graph, seq)
+            else:
+                self.measure(graph, seq)
+        self.interpolate_again(graph)
 
     def interpolated(self) -> list[int]:
         """Frames posed by time alone (no flow of tracking's or mapping's), oldest first."""

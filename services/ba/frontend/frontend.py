@@ -200,7 +200,7 @@ class Frontend:
         # frames after the last keyframe too: at the end no later keyframe will come to bracket them
         for seq in [s for s, f in self.frames.frames.items() if f.anchor is None]:
             self.frames.align(g, seq)
-        self._align_at_end(time.monotonic() + self.params.final_align_s)
+        self.frames.align_at_end(g, time.monotonic() + self.params.final_align_s, self.params.realign_focal_change)
         return self._update(list(range(len(g))), every_frame=True)
 
     def refine_globally(self) -> Update:
@@ -228,34 +228,6 @@ class Frontend:
         should_stop = (lambda: time.monotonic() - began >= bound_s) if bound_s > 0 else None
         return g.run(everything, g.pairs(everything, self.params.graph.global_radius),
                      self._ba_params(everything, self.params.global_ba), should_stop) is not None
-
-    def _align_at_end(self, deadline: float) -> None:
-        """Frames still held are aligned to their final keyframes until ``deadline`` (time.monotonic()): first
-        every tracked frame solved again with tracking's flow (``FramePoses.resolve``, ~10 ms each); then, with
-        mapping's flow, those no flow of mapping's measured yet, the longest evidence first
-        (``FramePoses.flow_spans``: the synthetic orbit's tracked frames are 40-90 mm off 20-35 frames from their
-        reference, within ~2 mm of mapping's flow close to it), and those measured while the focal was still
-        settling, more than ``realign_focal_change`` off the final one (their flow is kept: only the solve runs
-        again; a 40 deg lens whose calibration started 18 % short: 2.5 -> 1.2 % of path, docs/BENCHMARKS.md).
-        Last, whatever the time, the frames tracking skipped are interpolated again between their neighbours as
-        those now are (no flow)."""
-        g = self.graph
-        unmeasured = self.frames.unmeasured()
-        spans = self.frames.flow_spans(g, unmeasured)
-        steps = [("resolve", s) for s in self.frames.resolvable(again=True)]
-        steps += [("measure", s) for s in sorted(unmeasured, key=lambda s: (-spans[s], s))]
-        steps += [("measure", s) for s in self.frames.stale_focal(float(g.intrinsics[0]),
-                                                                  self.params.realign_focal_change)]
-        for done, (step, seq) in enumerate(steps):
-            if time.monotonic() >= deadline:
-                logger.info("end of stream: frames left with their earlier poses (time bound)",
-                            extra={"aligned": done, "left": len(steps) - done})
-                break
-            if step == "resolve":
-                self.frames.resolve(g, seq)
-            else:
-                self.frames.measure(g, seq)
-        self.frames.interpolate_again(g)
 
     def refine_frame(self) -> Update:
         """Mapping's spare time on a live stream, one frame per call; its revised pose in the update (empty when
