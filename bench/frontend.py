@@ -101,9 +101,9 @@ def run_frontend(frames: list[SourceFrame], focal: float | None = None,
             lite = cv2.resize(work, (work.shape[1] // 2, work.shape[0] // 2), interpolation=cv2.INTER_AREA)
             tracked = None if anchor is None else anchor[:2]
             world = anchor[2] if anchor is not None and live else None
-            flow = None if anchor is None or not live else anchor[3]
+            flow = None if anchor is None or not live else (anchor[0], *anchor[3])
             keep(frontend.add_frame(FrameInput(frame.index, frame.t_ns, lite, tracked, tracked_world=world,
-                                               tracked_flow=flow, tracked_ref=None if anchor is None else anchor[0])))
+                                               tracked_flow=flow)))
             return
         guess = None
         if anchor is not None:  # as the ba service does: start mapping where tracking put it

@@ -218,7 +218,7 @@ def tracked_live():
             direction = torch.randn(3, generator=gen, dtype=torch.float64)
             rel[:3, 3] += 0.05 * direction / direction.norm()
             fe.add_frame(FrameInput(msg.seq, msg.t_ns, msg.image, (out.ref_seq, rel),
-                                    tracked_flow=(out.target, out.confidence)))
+                                    tracked_flow=(out.ref_seq, out.target, out.confidence)))
     return world, fe
 
 

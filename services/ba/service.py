@@ -48,7 +48,7 @@ from services.ba.checkpoint import Checkpointer
 from services.ba.frontend.frontend import FrameInput, Frontend, KeyframeInput
 from services.ba.frontend.graph import NativeCodes
 from services.ba.settings import BaSettings
-from services.ba.tracking import TrackingLoop
+from services.ba.tracking import Anchor, TrackingLoop
 
 log = logging.getLogger(__name__)
 POLL_S = 0.05
@@ -72,9 +72,9 @@ class BaState:
     merged: int = 0  # real-time keyframes merged as frames because mapping was behind
     merged_in_a_row: int = 0
     dropped: int = 0  # frames the inboxes dropped by the real-time policy (set at end of stream)
-    # frame seq -> (keyframe seq, keyframe_from_cam, world_from_cam, tracking's flow or None) from the tracking
-    # thread, which fills it (a checkpoint of an earlier version holds the first three only)
-    anchors: dict[int, tuple] = field(default_factory=dict)
+    # frame seq -> where tracking put it, from the tracking thread, which fills it (a checkpoint of an earlier
+    # version holds plain (ref_seq, ref_from_cam, world_from_cam) tuples: _take_anchor reads both)
+    anchors: dict[int, Anchor] = field(default_factory=dict)
     ended_upto: int = -1  # the last frame seq of a stream that ended: anything up to it comes again, not anew
     final_outputs: Outputs = field(default_factory=list)  # the last stream's final graph, poses and EOS
 
@@ -115,20 +115,19 @@ def _pose_guess(state: BaState, seq: int) -> torch.Tensor | None:
     anchor = _take_anchor(state, seq)
     if anchor is None:
         return None
-    ref_seq, ref_from_cam, world_from_cam = anchor[:3]
     graph = state.frontend.graph
-    if graph is not None and ref_seq in graph.seqs:
-        return graph.poses[graph.index(ref_seq)] @ ref_from_cam.to(graph.device)
-    return world_from_cam
+    if graph is not None and anchor.ref_seq in graph.seqs:
+        return graph.poses[graph.index(anchor.ref_seq)] @ anchor.ref_from_cam.to(graph.device)
+    return anchor.world_from_cam
 
 
-def _take_anchor(state: BaState, seq: int) -> tuple | None:
+def _take_anchor(state: BaState, seq: int) -> Anchor | None:
     """Pop frame ``seq``'s anchor, forgetting older ones mapping never asked for (frames dropped on the way)."""
     anchor = state.anchors.pop(seq, None)
     if len(state.anchors) > 64:
         for old in [s for s in list(state.anchors) if s < seq]:
             state.anchors.pop(old, None)
-    return anchor
+    return None if anchor is None else Anchor(*anchor)
 
 
 def handle_codes(state: BaState, msg: KeyframeCodes, cfg: BaSettings) -> Outputs:
@@ -167,15 +166,15 @@ def handle_frame_lite(state: BaState, msg: FrameLite | Keyframe, cfg: BaSettings
     when tracking did not; mapping spends no flow on frames, it has no time to spare."""
     state.last_seq = max(state.last_seq, msg.seq)
     anchor = _take_anchor(state, msg.seq)  # taken either way, so the table only holds frames still on their way
-    tracked = anchor[:2] if msg.realtime and anchor is not None else None
-    world = anchor[2] if msg.realtime and anchor is not None else None
+    live = anchor if msg.realtime else None
+    tracked = None if live is None else (live.ref_seq, live.ref_from_cam)
+    world = None if live is None else live.world_from_cam
     # a live frame tracking did not pose (before the map started, too little flow, or dropped to keep tracking's
     # latency bounded) is posed between its keyframes by time alone: aligning it by flow would put mapping
     # behind the camera
     cheap = msg.realtime and anchor is None
-    flow = anchor[3] if msg.realtime and anchor is not None and len(anchor) > 3 else None
-    update = state.frontend.add_frame(FrameInput(msg.seq, msg.t_ns, msg.image, tracked, cheap, world, flow,
-                                                 None if anchor is None else anchor[0]))
+    flow = None if live is None or live.flow is None else (live.ref_seq, *live.flow)
+    update = state.frontend.add_frame(FrameInput(msg.seq, msg.t_ns, msg.image, tracked, cheap, world, flow))
     return outputs_of(state.frontend, msg, update, final=False)
 
 

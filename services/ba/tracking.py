@@ -12,6 +12,7 @@ import logging
 import threading
 import time
 from collections import deque
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -29,11 +30,21 @@ POLL_S = 0.05
 STARTUP_BACKLOG = 512  # frames held, not dropped, while the tracker starts (a spawned process: seconds)
 
 
+class Anchor(NamedTuple):
+    """Where tracking put a frame, for mapping: anchored there instead of aligned again, solved again with
+    ``flow`` once the keyframe is refined, and a keyframe's start."""
+
+    ref_seq: int  # the reference keyframe
+    ref_from_cam: torch.Tensor  # (4, 4) float64
+    world_from_cam: torch.Tensor  # (4, 4) float64
+    flow: tuple[torch.Tensor, torch.Tensor] | None = None  # tracking's (h, w, 2) grid targets and (h, w) confidence
+
+
 class TrackingLoop:
     """Runs a tracker on a thread over ``inbox`` (frame_lite and keyframe messages of one stream)."""
 
     def __init__(self, tracker: LocalTracker | TrackerProcess, bus: Bus, inbox: Inbox, stream: str,
-                 anchors: dict[int, tuple], niceness: int = 0):
+                 anchors: dict[int, Anchor], niceness: int = 0):
         self.tracker, self.bus, self.inbox, self.stream, self.niceness = tracker, bus, inbox, stream, niceness
         self._lock = threading.Lock()
         self._pending_ref: Reference | None = None
@@ -41,10 +52,7 @@ class TrackingLoop:
         self.tracked = 0  # frames posed by tracking in this stream
         self.not_rigid = 0  # tracked poses that were not rigid transforms (not published)
         self.last_seq = -1  # highest seq handled (for progress reports)
-        # seq -> (reference keyframe seq, (4, 4) reference_from_cam, (4, 4) world_from_cam, tracking's flow or
-        # None): mapping anchors the frame there instead of aligning it again, solves it again with that flow once
-        # the keyframe is refined, and starts a keyframe from it (dict operations are atomic; mapping pops what
-        # it uses, reset clears the rest)
+        # seq -> Anchor (dict operations are atomic; mapping pops what it uses, reset clears the rest)
         self.anchors = anchors
         self._skipped: deque[FrameLite | Keyframe] = deque()  # frames the inbox dropped: predicted poses only
         inbox.on_drop = lambda delivery: self._skipped.append(delivery.msg)
@@ -149,7 +157,8 @@ class TrackingLoop:
         self.tracked += 1
         if out.ok:
             flow = None if out.flow is None else tuple(torch.from_numpy(a) for a in out.flow)
-            self.anchors[msg.seq] = (out.ref_seq, torch.from_numpy(out.ref_from_cam), torch.from_numpy(out.pose), flow)
+            self.anchors[msg.seq] = Anchor(out.ref_seq, torch.from_numpy(out.ref_from_cam), torch.from_numpy(out.pose),
+                                           flow)
         self._publish(msg, out.pose, provisional=out.ref_seq < 0)
         if not out.ok and out.ref_seq >= 0:
             log.info("frame kept its predicted pose (weak flow)", extra={"stream": self.stream, "seq": msg.seq})

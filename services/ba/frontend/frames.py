@@ -46,6 +46,13 @@ class FrameRecord:
     resolved: bool = False  # solved again with tracking's flow against that keyframe as mapping refined it
 
 
+def _around(seqs: list[int], seq: int) -> tuple[int | None, int | None]:
+    """The nearest of the ascending ``seqs`` before and after ``seq`` (None where there is none)."""
+    i = bisect_left(seqs, seq)
+    after = i + (i < len(seqs) and seqs[i] == seq)
+    return (seqs[i - 1] if i > 0 else None), (seqs[after] if after < len(seqs) else None)
+
+
 def interpolate(pose_a: torch.Tensor, pose_b: torch.Tensor, frac: float) -> torch.Tensor:
     """Pose ``(4, 4)`` a fraction ``frac`` of the way from ``pose_a`` to ``pose_b`` (geodesic in SE3)."""
     rel = se3.inverse(pose_a) @ pose_b
@@ -153,12 +160,11 @@ class FramePoses:
         aligned. On a live stream tracking skips frames, often every other one, so those are a frame period apart
         where the keyframes are ~25 (the synthetic orbit at 30 Hz: 50-80 mm off between keyframes). None when
         one side has no such pose."""
-        flowed = self._flowed(graph) if flowed is None else flowed
-        i = bisect_left(flowed, frame.seq)
-        if i == 0 or i >= len(flowed) or flowed[i] == frame.seq:
+        before, after = _around(self._flowed(graph) if flowed is None else flowed, frame.seq)
+        if before is None or after is None:
             return None
         ends = [(graph.stamps[graph.index(s)], graph.poses[graph.index(s)]) if s in graph.seqs
-                else (self.frames[s].stamp, self.pose(graph, s)) for s in (flowed[i - 1], flowed[i])]
+                else (self.frames[s].stamp, self.pose(graph, s)) for s in (before, after)]
         span = max(ends[1][0] - ends[0][0], 1)
         return interpolate(ends[0][1], ends[1][1], (frame.stamp - ends[0][0]) / span)
 
@@ -187,10 +193,8 @@ class FramePoses:
             if not frame.interpolate_only:
                 spans[seq] = seq - frame.tracked_ref if frame.tracked_ref is not None else 0
                 continue
-            i = bisect_left(flowed, seq)
-            before = flowed[i - 1] if i > 0 else seq
-            after = flowed[i] if i < len(flowed) else seq
-            spans[seq] = after - before
+            before, after = _around(flowed, seq)
+            spans[seq] = (seq if after is None else after) - (seq if before is None else before)
         return spans
 
     def align_at_end(self, graph: KeyframeGraph, deadline: float, realign_focal_change: float) -> None:

@@ -154,10 +154,9 @@ class Frontend:
         if self.graph is not None and frame.seq in self.graph.seqs:
             raise ValueError(f"frame {frame.seq} is already a keyframe")
         record = FrameRecord(frame.seq, frame.t_ns, image, interpolate_only=frame.interpolate_only)
-        ref = frame.tracked[0] if frame.tracked is not None else frame.tracked_ref
-        if frame.tracked_flow is not None and ref is not None:  # kept to solve the frame again (frames.py)
-            record.tracked_ref = ref
-            record.targets[ref] = Targets(*frame.tracked_flow)
+        if frame.tracked_flow is not None:  # kept to solve the frame again (frames.py)
+            record.tracked_ref, target, confidence = frame.tracked_flow
+            record.targets[record.tracked_ref] = Targets(target, confidence)
         if frame.tracked is not None and self.graph is not None and frame.tracked[0] in self.graph.seqs:
             # tracking already aligned it to a keyframe: anchored there, it moves with every BA of that keyframe
             # and needs no flow of its own (its pose went out when it was tracked)

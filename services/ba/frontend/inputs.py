@@ -33,9 +33,8 @@ class FrameInput(NamedTuple):
     tracked: tuple[int, torch.Tensor] | None = None  # (keyframe seq, (4, 4) keyframe_from_cam) from tracking
     interpolate_only: bool = False  # pose it between its keyframes by time, spend no flow on it
     tracked_world: torch.Tensor | None = None  # (4, 4) world_from_cam from tracking, when its keyframe is not mapped
-    tracked_flow: tuple[torch.Tensor, torch.Tensor] | None = None  # tracking's flow from its reference keyframe
-    # (the seq in ``tracked``): (h, w, 2) float32 targets and (h, w) float32 confidence on the grid (frames.py)
-    tracked_ref: int | None = None  # that reference's seq when ``tracked`` is None (``tracked_world`` given)
+    tracked_flow: tuple[int, torch.Tensor, torch.Tensor] | None = None  # tracking's flow: its reference keyframe's
+    # seq, (h, w, 2) float32 grid targets and (h, w) float32 confidence (frames.FramePoses.resolve)
 
 
 def check_keyframe(kf: KeyframeInput) -> tuple[np.ndarray, tuple[int, int]]:
