@@ -52,9 +52,14 @@ def test_a_restarted_features_process_numbers_its_bases_above_the_last_run():
     assert basis is not None and basis.version == again
 
 
-def test_frames_lost_on_the_way_are_counted_in_the_end_of_stream(tmp_path):
-    """Ingest announces 12 frames; 3 never arrive (as Zenoh drops them on congestion): features' EOS says 3 lost,
-    after waiting ``eos_wait_s`` for them."""
+@pytest.mark.parametrize("missing, handled, lost", [
+    ((4, 5, 9), -1, 3),
+    ((0, 4, 9), -1, 3),  # the first frame too: a worker that starts on a stream answers for it
+    ((0, 1, 2, 3, 4, 5, 9), 3, 3),  # a restart: its predecessor handled up to 3, so 4, 5 and 9 are lost
+], ids=["middle", "first", "after-a-predecessor"])
+def test_frames_lost_on_the_way_are_counted_in_the_end_of_stream(tmp_path, missing, handled, lost):
+    """Ingest announces 12 frames; some never arrive (as Zenoh drops them on congestion): features' EOS says how
+    many, after waiting ``eos_wait_s`` for them, counting from after the frames a predecessor had handled."""
     import time
 
     from services.features.service import closing_outputs, overdue_eos
@@ -65,9 +70,9 @@ def test_frames_lost_on_the_way_are_counted_in_the_end_of_stream(tmp_path):
     state = build_state(cfg)
     world = SynthWorld(SynthConfig(n_frames=12, person=False, moved_chair=False))
     out = []
-    for i in [s for s in range(12) if s not in (4, 5, 9)]:
+    for i in [s for s in range(12) if s not in missing]:
         f = world.render(i)
-        out += handle_frame(state, Frame("s", i, int(f.t_ns), 512, 384, image=f.rgb), cfg)
+        out += handle_frame(state, Frame("s", i, int(f.t_ns), 512, 384, image=f.rgb, features_handled=handled), cfg)
     out += handle_eos(state, Eos("s", 11, 0, stage="ingest", count=12), cfg)
     assert not [m for _, m in out if isinstance(m, Eos)], "the EOS waits for the missing frames first"
     time.sleep(0.1)
@@ -78,4 +83,4 @@ def test_frames_lost_on_the_way_are_counted_in_the_end_of_stream(tmp_path):
             break
         time.sleep(0.05)
         out += closing_outputs(state)
-    assert eos and eos[0].lost == 3 and eos[0].dropped == 0
+    assert eos and eos[0].lost == lost and eos[0].dropped == 0

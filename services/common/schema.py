@@ -63,6 +63,9 @@ class Frame(Message):
     intrinsics: Optional[np.ndarray] = field(default=None, metadata=arr("f8", (4,)))  # fx fy cx cy (px)
     depth: Optional[np.ndarray] = field(default=None, metadata=arr("f4", ("H", "W")))  # metres, 0 = missing
     realtime: bool = False  # the source is paced in real time: later stages may drop frames (never keyframes)
+    # the highest seq a features instance had reported handled when this was sent (-1: none): a features that
+    # starts on the stream counts every frame after it as its own, so one lost before its first is still counted
+    features_handled: int = -1
 
     def check(self) -> None:
         if (self.image is None) == (self.jpeg is None):

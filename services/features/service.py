@@ -56,7 +56,9 @@ class FeaturesState:
     last_keyframe_seq: int = -1
     last_frame: tuple[int, int, int] = (0, 0, 0)  # original (width, height, t_ns) of the latest frame
     frames_seen: int = 0
-    first_seq: int = -1  # the first frame this worker saw (> 0 after a restart: ingest sent again what it lost)
+    # the first frame this worker answers for: after the last one a predecessor handled (Frame.features_handled;
+    # > 0 after a restart, when ingest sent again what it lost), so frames lost before the first one seen count
+    first_seq: int = -1
     realtime: bool = False  # the stream is paced in real time (from its frames)
     pending_eos: Eos | None = None  # ingest's EOS, held until every frame it announced has arrived
     eos_deadline: float = 0.0
@@ -121,8 +123,8 @@ def decode_image(msg: Frame) -> np.ndarray:
 def handle_frame(state: FeaturesState, msg: Frame, cfg: FeaturesSettings) -> Outputs:
     outputs = _frame(state, msg, cfg)
     state.frames_seen += 1
-    if state.first_seq < 0:
-        state.first_seq = msg.seq
+    if state.first_seq < 0:  # min: the repeat of a frame its predecessor handled, sent to say where the stream is
+        state.first_seq = min(msg.seq, msg.features_handled + 1)
     if state.pending_eos is not None and _all_frames_in(state, state.pending_eos):
         outputs += _finish(state, state.pending_eos)
     return outputs
@@ -180,7 +182,7 @@ def handle_eos(state: FeaturesState, msg: Eos, cfg: FeaturesSettings) -> Outputs
 
 
 def _all_frames_in(state: FeaturesState, eos: Eos) -> bool:
-    """Every frame ingest announced has arrived, counting from the first this worker saw (a features that
+    """Every frame ingest announced has arrived, counting from the first this worker answers for (a features that
     restarted mid-stream gets the frames its predecessor had not handled, not the whole stream)."""
     return state.frames_seen + state.dropped >= eos.count - max(state.first_seq, 0)
 

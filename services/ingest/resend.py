@@ -9,6 +9,7 @@ stream announced after its own end of stream until features has sent its end of 
 restarts after the last frame still finds the stream and gets what it missed."""
 from __future__ import annotations
 
+import dataclasses
 import threading
 from collections import deque
 
@@ -64,11 +65,13 @@ class ResendBuffer:
             if not self._pending:
                 return []
             self._pending = False
-            out: list[Frame | Eos] = [f for f in self._frames if f.seq > self.durable]
+            # stamped with what is handled now: the new instance counts as lost only what came after it
+            out: list[Frame | Eos] = [dataclasses.replace(f, features_handled=self.durable)
+                                      for f in self._frames if f.seq > self.durable]
             if not out and self._last is not None:
                 # its predecessor had handled everything: the newest frame again tells the new one where the
                 # stream is (its credit counts from the frames it has seen; the repeat is not taken twice downstream)
-                out.append(self._last)
+                out.append(dataclasses.replace(self._last, features_handled=self.durable))
             if self._eos is not None:
                 out.append(self._eos)
         return out

@@ -21,8 +21,9 @@ log = logging.getLogger(__name__)
 CREDIT_POLL_S = 0.05
 
 
-def frame_message(cfg: IngestSettings, seq: int, item: SourceFrame, session: str = "") -> Frame:
-    """The wire message of one source frame (JPEG or raw RGB)."""
+def frame_message(cfg: IngestSettings, seq: int, item: SourceFrame, session: str = "",
+                  features_handled: int = -1) -> Frame:
+    """The wire message of one source frame (JPEG or raw RGB); ``features_handled``: see :class:`Frame`."""
     h, w = item.rgb.shape[:2]
     intrinsics = np.asarray(cfg.intrinsics, np.float64) if cfg.intrinsics else None
     depth = item.depth if cfg.use_depth else None
@@ -32,9 +33,9 @@ def frame_message(cfg: IngestSettings, seq: int, item: SourceFrame, session: str
         if not ok:
             raise ValueError("JPEG encoding failed")
         return Frame(cfg.stream, seq, item.t_ns, w, h, jpeg=buf.tobytes(), intrinsics=intrinsics, depth=depth,
-                     realtime=realtime, session=session)
+                     realtime=realtime, session=session, features_handled=features_handled)
     return Frame(cfg.stream, seq, item.t_ns, w, h, image=item.rgb, intrinsics=intrinsics, depth=depth, realtime=realtime,
-                 session=session)
+                 session=session, features_handled=features_handled)
 
 
 class CreditGate:
@@ -126,7 +127,7 @@ def _stream(cfg: IngestSettings, bus: Bus, stop: threading.Event, source: Source
             counters.dropped += 1
             continue
         try:
-            frame = frame_message(cfg, seq, item, gate.session)
+            frame = frame_message(cfg, seq, item, gate.session, gate.resend.durable)
             bus.publish(frame_key, frame, drop_if_congested=not lossless)
             if lossless:
                 gate.resend.record(frame)
