@@ -7,7 +7,6 @@ few most recent kept open). Nothing is written to an archive: its stream ended, 
 fused any more. ``map/sessions`` lists them."""
 from __future__ import annotations
 
-import re
 import sqlite3
 import threading
 from collections import OrderedDict
@@ -18,11 +17,11 @@ import numpy as np
 
 from ..common.errors import UnknownSession
 from ..common.schema import MapSessions
+from ..common.wire_check import SESSION_NAME
 from . import queries
 from .config import MapstoreSettings
 from .state import MapState
 
-_SESSION = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
 
 
 def _meta(path: Path) -> tuple[str, int, bool] | None:
@@ -53,7 +52,7 @@ class ArchivedMaps:
         found = []
         for candidate in sorted(self.path.parent.glob(f"{self.path.stem}.*{self.path.suffix}")):
             session = candidate.name[len(self.path.stem) + 1:len(candidate.name) - len(self.path.suffix)]
-            meta = _meta(candidate) if _SESSION.match(session) else None
+            meta = _meta(candidate) if SESSION_NAME.match(session) else None
             if meta is not None:
                 found.append((session, meta[1], meta[2]))
         return found
@@ -72,7 +71,7 @@ class ArchivedMaps:
         session = params.get("session", "")
         if not session or session == current.session:
             return current
-        if not _SESSION.match(session) or not self.path_of(session).is_file():
+        if not SESSION_NAME.match(session) or not self.path_of(session).is_file():
             known = [current.session] + [r[0] for r in self.archived()]
             raise UnknownSession(f"stream {self.cfg.stream!r} has no map of session {session!r}; sessions: "
                                  f"{', '.join(s for s in known if s) or 'none'}")
