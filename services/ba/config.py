@@ -9,6 +9,7 @@ from __future__ import annotations
 from typing import Literal
 
 import torch
+from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
 from services.ba.core.params import BAParams, FlowParams, RobustParams
@@ -68,6 +69,9 @@ class BASettings(KmVipeSettings):
     iteration (RobustParams.ark_refresh_px)."""
     compute_dtype: Literal["float32", "float64"] = "float32"
     """Per-pixel BA arithmetic; the camera system is float64 either way (docs/BENCHMARKS.md, BA core)."""
+    linearise_edges: int = Field(BAParams.linearise_edges, ge=0)
+    """A BA over more edges than this forms its Jacobians this many edges at a time (0: all at once), which
+    bounds the memory of the end-of-stream BA over every held keyframe (docs/BENCHMARKS.md, BA memory)."""
     flow_preset: Literal["ultrafast", "fast", "medium"] = "medium"
     """OpenCV DIS preset of the flow targets."""
     fb_sigma: float = 1.0
@@ -86,7 +90,7 @@ class BASettings(KmVipeSettings):
                         lambda_embed=self.lambda_embed, embed_form=self.embed_form, alpha_disp=self.alpha_disp,
                         disp_rel_damping=self.disp_rel_damping,
                         optimise_focal=self.optimise_focal, robust=self.robust_params(),
-                        compute_dtype=self.compute_dtype)
+                        compute_dtype=self.compute_dtype, linearise_edges=self.linearise_edges)
 
     def flow_params(self) -> FlowParams:
         """Flow-target parameters."""

@@ -16,7 +16,7 @@ import torch
 from services.ba.core import embedding
 
 
-EDGE_CHUNK = 64  # edges sampled at once
+EDGE_CHUNK = 16  # edges sampled at once
 
 
 class ArkCosine(NamedTuple):

@@ -15,12 +15,13 @@ the scale direction is kept finite by the damping and, after every accepted step
 the oldest camera so that the distance between camera 0 and the first free camera keeps its initial value
 (the energy is invariant under this similarity, so this only picks the gauge).
 
-Every pixel of every edge is processed in one batched tensor expression: no Python loop over pixels or edges.
+Every pixel of every edge is processed in one batched tensor expression: no Python loop over pixels, and over
+edges only in slices of ``BAParams.linearise_edges`` (a global BA's Jacobians would not fit in memory at once).
 """
 from __future__ import annotations
 
 import logging
-from typing import Callable, NamedTuple
+from typing import Callable, Iterator, NamedTuple
 
 import torch
 
@@ -95,6 +96,16 @@ def _prepare(problem: BAProblem, params: BAParams, h: int, w: int) -> _Prepared:
         codes = codes.float()  # half precision arithmetic is slow or missing on CPUs
     return _Prepared(problem.ii, problem.jj, targets, problem.confidence.reshape(e, -1).to(dtype),
                      projective.pixel_grid(h, w, dtype, dev), codes)
+
+
+def _edges(prep: _Prepared, edges: slice) -> _Prepared:
+    return prep._replace(ii=prep.ii[edges], jj=prep.jj[edges], targets=prep.targets[edges],
+                         confidence=prep.confidence[edges])
+
+
+def _edge_slices(n_edges: int, params: BAParams) -> list[slice]:
+    step = params.linearise_edges or n_edges
+    return [slice(start, min(start + step, n_edges)) for start in range(0, n_edges, max(step, 1))]
 
 
 class _Residuals(NamedTuple):
@@ -204,6 +215,19 @@ def _normal_equations(res: _Residuals, params: BAParams, frozen: _Frozen) -> sch
     return schur.NormalEquations(j_cam, j_disp, resid, weight)
 
 
+def _linearised(state: BAState, prep: _Prepared, params: BAParams, frozen: _Frozen,
+                res: _Residuals) -> Iterator[tuple[slice, schur.NormalEquations]]:
+    """The normal equations at ``state``: of ``res`` when it holds Jacobians (a problem of one slice), else
+    slice by slice, each slice's residuals evaluated again with Jacobians (see ``BAParams.linearise_edges``)."""
+    if res.reproj.jac is not None:
+        yield slice(0, len(prep.ii)), _normal_equations(res, params, frozen)
+        return
+    for edges in _edge_slices(len(prep.ii), params):
+        part = _residuals(state, _edges(prep, edges), params, with_jac=True)
+        kern = robust.Kernel(*(None if t is None else t[edges] for t in frozen.kernel))
+        yield edges, _normal_equations(part, params, _Frozen(frozen.alpha[edges], kern, frozen.embed_weight[edges]))
+
+
 def _apply(state: BAState, step: schur.Step, params: BAParams,
            focal_bounds: tuple[float, float] | None = None) -> BAState:
     poses = se3.retract(state.poses, step.poses)
@@ -249,7 +273,8 @@ def run_ba(state: BAState, problem: BAProblem, params: BAParams,
     scale_anchor = params.fix_scale and not has_prior and params.fixed_poses == 1 and distance > 1e-9
     lm = params.lm_init
     prep = _prepare(problem, params, h, w)
-    res = _residuals(state, prep, params, with_jac=True)
+    whole = len(_edge_slices(len(prep.ii), params)) <= 1  # else the Jacobians are formed slice by slice
+    res = _residuals(state, prep, params, with_jac=whole)
     ark = _ark(res, prep, params, None)
     frozen = _frozen(res, params, ark)
     prior_cost = _prior_terms(state, problem, params)[2]
@@ -258,7 +283,7 @@ def run_ba(state: BAState, problem: BAProblem, params: BAParams,
         prior_h, prior_g, _ = _prior_terms(state, problem, params)
         if params.disp_rel_damping > 0:  # damping, not energy: it slows what no flow constrains (BAParams)
             prior_h = prior_h + params.disp_rel_damping / state.disparity.reshape(n, -1).to(prior_h.dtype) ** 2
-        step = schur.solve(_normal_equations(res, params, frozen), prep.ii, prep.jj, n, free, lm,
+        step = schur.solve(_linearised(state, prep, params, frozen, res), prep.ii, prep.jj, n, free, lm,
                            params.pose_eps, params.disp_eps, prior_h, prior_g)
         trial = _apply(state, step, params, problem.focal_bounds)
         if scale_anchor:
@@ -268,7 +293,7 @@ def run_ba(state: BAState, problem: BAProblem, params: BAParams,
         if trial_cost < costs[-1]:
             state, lm = trial, lm * params.lm_down
             # after the last iteration only the weights are wanted: no Jacobians
-            res = _residuals(state, prep, params, with_jac=it + 1 < params.iterations)
+            res = _residuals(state, prep, params, with_jac=whole and it + 1 < params.iterations)
             ark = _ark(res, prep, params, ark)
             frozen = _frozen(res, params, ark)
             decrease = costs[-1] - trial_cost

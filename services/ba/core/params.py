@@ -65,6 +65,9 @@ class BAParams:
     min_disparity: float = 1e-4  # disparities are clamped to at least this after each update
     compute_dtype: str = "float32"  # per-pixel residuals and Jacobians: "float32" (fast) or "float64" (exact
     # to 1e-12, for tests); poses, the camera system and its Cholesky solve are float64 either way
+    linearise_edges: int = 96  # a problem with more edges is linearised this many edges at a time, each slice's
+    # Jacobians summed into the normal equations and freed (0: all at once): a global BA's Jacobians and their
+    # intermediates are ~1 GB at 600 edges. Up to it the Jacobians are kept across a rejected LM step
     robust: RobustParams = field(default_factory=RobustParams)
 
     def __post_init__(self) -> None:
@@ -72,6 +75,8 @@ class BAParams:
             raise ValueError(f"fixed_poses must be >= 1 (gauge), got {self.fixed_poses}")
         if self.compute_dtype not in ("float32", "float64"):
             raise ValueError(f"compute_dtype must be 'float32' or 'float64', got {self.compute_dtype!r}")
+        if self.linearise_edges < 0:
+            raise ValueError(f"linearise_edges must be >= 0 (0: all edges at once), got {self.linearise_edges}")
         if self.embed_form not in ("angular", "chordal"):
             raise ValueError(f"embed_form must be 'angular' or 'chordal', got {self.embed_form!r}")
 

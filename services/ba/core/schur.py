@@ -14,7 +14,7 @@ costs ``N * P * D^2`` instead of ``N * P * n_cam^2``.
 """
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Iterable, NamedTuple
 
 import torch
 
@@ -69,12 +69,49 @@ def _edge_slots(ii: torch.Tensor, n_kf: int) -> tuple[torch.Tensor, int]:
     return slot, int(counts.max().item()) if len(ii) else 0
 
 
-def solve(eq: NormalEquations, ii: torch.Tensor, jj: torch.Tensor, n_kf: int, free_cam: torch.Tensor,
-          lm: float, pose_eps: float, disp_eps: float, prior_h: torch.Tensor, prior_g: torch.Tensor) -> Step:
+def _add_edges(eq: NormalEquations, ii: torch.Tensor, jj: torch.Tensor, slot: torch.Tensor, n_kf: int, n_ext: int, *,
+               expand: torch.Tensor, big_h: torch.Tensor, big_g: torch.Tensor, h_dd: torch.Tensor, g_d: torch.Tensor,
+               coupling: torch.Tensor) -> None:
+    """Sum the normal equations of the edges ``ii -> jj`` (their ``slot`` among their source's out-edges) into the
+    camera system ``big_h`` (flat) / ``big_g``, the disparity diagonal ``h_dd`` / gradient ``g_d`` and the compact
+    camera-disparity ``coupling``, in place."""
+    n_edges, n_res, n_pix = eq.j_disp.shape
+    dtype, dev = big_h.dtype, big_h.device
+    wr = eq.weight * eq.residual
+    wd = eq.weight * eq.j_disp
+    # Sums over thousands of pixels: in float32 their rounding (~1e-7 relative per partial sum) is of the order of
+    # what the Schur complement leaves after cancelling when scale or focal are barely observable, so the operands
+    # of every reduction are promoted to the camera dtype first (tests/test_schur_conditioning.py)
+    h_77 = torch.empty(n_edges, 7, 7, dtype=dtype, device=dev)
+    g_7 = torch.empty(n_edges, 7, dtype=dtype, device=dev)
+    for chunk in _chunks(n_edges):  # the float64 copies of a few edges at a time: a global BA's are GBs at once
+        flat_j = eq.j_cam[chunk].reshape(-1, 7, n_res * n_pix).to(dtype)
+        h_77[chunk] = torch.bmm(flat_j * eq.weight[chunk].reshape(len(flat_j), 1, -1).to(dtype), flat_j.transpose(1, 2))
+        g_7[chunk] = torch.bmm(flat_j, wr[chunk].reshape(len(flat_j), -1, 1).to(dtype))[..., 0]
+    h_cc = expand @ h_77 @ expand.T  # (E, 13, 13) over [xi_i, xi_j, f]
+    g_c = -g_7 @ expand.T
+    ar6 = torch.arange(6, device=dev)
+    cols = torch.cat([6 * ii[:, None] + ar6, 6 * jj[:, None] + ar6,
+                      torch.full((n_edges, 1), 6 * n_kf, device=dev)], 1)  # (E, 13)
+    big_h.index_add_(0, (cols[:, :, None] * n_ext + cols[:, None, :]).reshape(-1), h_cc.reshape(-1))
+    big_g.index_add_(0, cols.reshape(-1), g_c.reshape(-1))
+    h_dd.index_add_(0, ii, (wd * eq.j_disp).sum(1).to(h_dd.dtype))
+    g_d.index_add_(0, ii, -(wr * eq.j_disp).sum(1).to(g_d.dtype))
+    # sum over the few residual components explicitly: a batched matmul of P*E tiny matrices is far slower
+    h_cd7 = sum(eq.j_cam[:, :, r] * wd[:, None, r] for r in range(n_res))  # (E, 7, P) = [xi_i, f]
+    coupling[:, :7].index_add_(0, ii, h_cd7.to(coupling.dtype))
+    coupling[ii[:, None], 7 + 6 * slot[:, None] + ar6] = -h_cd7[:, :6].to(coupling.dtype)
+
+
+def solve(eq: NormalEquations | Iterable[tuple[slice, NormalEquations]], ii: torch.Tensor, jj: torch.Tensor,
+          n_kf: int, free_cam: torch.Tensor, lm: float, pose_eps: float, disp_eps: float, prior_h: torch.Tensor,
+          prior_g: torch.Tensor) -> Step:
     """Solve the damped system for the free camera variables and all disparities.
 
     Args:
-        eq: linearised residuals (see :class:`NormalEquations`).
+        eq: linearised residuals (see :class:`NormalEquations`) of every edge, or of consecutive edge slices one
+            at a time as ``(edges, equations)``: each slice's Jacobians are summed into the system and may then
+            be freed, so a global BA's need not all exist at once.
         ii, jj: ``(E,)`` source / target keyframe of each edge.
         n_kf: number of keyframes N.
         free_cam: ``(F,)`` long indices of the camera variables that are optimised.
@@ -82,51 +119,36 @@ def solve(eq: NormalEquations, ii: torch.Tensor, jj: torch.Tensor, n_kf: int, fr
         pose_eps, disp_eps: absolute diagonal damping of camera / disparity variables.
         prior_h, prior_g: ``(N, P)`` extra disparity diagonal and gradient (disparity prior; zeros if none).
     """
-    n_edges, n_res, n_pix = eq.j_disp.shape
-    dtype, dev = prior_h.dtype, eq.j_disp.device  # camera system and step dtype (float64 in BA)
+    parts = [(slice(0, len(ii)), eq)] if isinstance(eq, NormalEquations) else eq
+    dtype, dev = prior_h.dtype, ii.device  # camera system and step dtype (float64 in BA)
+    n_pix = prior_h.shape[1]
     n_cam = 6 * n_kf + 1
     n_ext = n_cam + 1  # one dummy column for padded slots
-    wr = eq.weight * eq.residual
-    wd = eq.weight * eq.j_disp
-    # Sums over thousands of pixels: in float32 their rounding (~1e-7 relative per partial sum) is of the order of
-    # what the Schur complement leaves after cancelling when scale or focal are barely observable, so the operands
-    # of every reduction are promoted to the camera dtype first (tests/test_schur_conditioning.py)
-    expand = _expansion(dtype, dev)  # (13, 7): [xi_i, xi_j, f] from [xi_i, f]
-    h_77 = torch.empty(n_edges, 7, 7, dtype=dtype, device=dev)
-    g_7 = torch.empty(n_edges, 7, dtype=dtype, device=dev)
-    for chunk in _chunks(n_edges):  # the float64 copies of a few edges at a time: a global BA's are GBs at once
-        flat_j = eq.j_cam[chunk].reshape(-1, 7, n_res * n_pix).to(dtype)
-        h_77[chunk] = torch.bmm(flat_j * eq.weight[chunk].reshape(len(flat_j), 1, -1).to(dtype), flat_j.transpose(1, 2))
-        g_7[chunk] = torch.bmm(flat_j, wr[chunk].reshape(len(flat_j), -1, 1).to(dtype))[..., 0]
-    h_cc = expand @ h_77 @ expand.T
-    g_c = -g_7 @ expand.T
-    # sum over the few residual components explicitly: a batched matmul of P*E tiny matrices is far slower
-    h_cd7 = sum(eq.j_cam[:, :, r] * wd[:, None, r] for r in range(n_res))  # (E, 7, P) = [xi_i, f]
     ar6 = torch.arange(6, device=dev)
-    cols = torch.cat([6 * ii[:, None] + ar6, 6 * jj[:, None] + ar6,
-                      torch.full((n_edges, 1), 6 * n_kf, device=dev)], 1)  # (E, 13)
-
-    big_h = torch.zeros(n_ext * n_ext, dtype=dtype, device=dev)
-    big_h.index_add_(0, (cols[:, :, None] * n_ext + cols[:, None, :]).reshape(-1), h_cc.reshape(-1))
-    big_h = big_h.view(n_ext, n_ext)
-    big_g = torch.zeros(n_ext, dtype=dtype, device=dev).index_add_(0, cols.reshape(-1), g_c.reshape(-1))
-    pix_dtype = eq.j_disp.dtype
-    h_dd = torch.zeros(n_kf, n_pix, dtype=pix_dtype, device=dev).index_add_(
-        0, ii, (wd * eq.j_disp).sum(1)) + prior_h.to(pix_dtype)
-    g_d = torch.zeros(n_kf, n_pix, dtype=pix_dtype, device=dev).index_add_(
-        0, ii, -(wr * eq.j_disp).sum(1)) + prior_g.to(pix_dtype)
-
-    # compact camera-disparity coupling per source keyframe
     slot, max_deg = _edge_slots(ii, n_kf)
     width = 7 + 6 * max_deg
-    coupling = torch.zeros(n_kf, width, n_pix, dtype=pix_dtype, device=dev)
-    coupling[:, :7].index_add_(0, ii, h_cd7)
-    pose_j_rows = 7 + 6 * slot[:, None] + ar6  # (E, 6)
-    coupling[ii[:, None], pose_j_rows] = -h_cd7[:, :6]
+    expand = _expansion(dtype, dev)  # (13, 7): [xi_i, xi_j, f] from [xi_i, f]
+    big_h = torch.zeros(n_ext * n_ext, dtype=dtype, device=dev)
+    big_g = torch.zeros(n_ext, dtype=dtype, device=dev)
+    h_dd = g_d = coupling = None
+    for edges, part in parts:
+        pix_dtype = part.j_disp.dtype
+        if coupling is None:
+            h_dd = torch.zeros(n_kf, n_pix, dtype=pix_dtype, device=dev)
+            g_d = torch.zeros(n_kf, n_pix, dtype=pix_dtype, device=dev)
+            coupling = torch.zeros(n_kf, width, n_pix, dtype=pix_dtype, device=dev)
+        _add_edges(part, ii[edges], jj[edges], slot[edges], n_kf, n_ext, expand=expand,
+                   big_h=big_h, big_g=big_g, h_dd=h_dd, g_d=g_d, coupling=coupling)
+    if coupling is None:  # no edge: only the damping and the prior
+        h_dd = g_d = torch.zeros(n_kf, n_pix, dtype=dtype, device=dev)
+        coupling = torch.zeros(n_kf, width, n_pix, dtype=dtype, device=dev)
+    h_dd = h_dd + prior_h.to(h_dd.dtype)
+    g_d = g_d + prior_g.to(g_d.dtype)
+    big_h = big_h.view(n_ext, n_ext)
     colmap = torch.full((n_kf, width), n_cam, dtype=torch.long, device=dev)
     colmap[:, :6] = 6 * torch.arange(n_kf, device=dev)[:, None] + ar6
     colmap[:, 6] = 6 * n_kf
-    colmap[ii[:, None], pose_j_rows] = 6 * jj[:, None] + ar6
+    colmap[ii[:, None], 7 + 6 * slot[:, None] + ar6] = 6 * jj[:, None] + ar6
 
     # Levenberg-Marquardt damping of the full system, then eliminate the disparities
     diag = torch.diagonal(big_h)
