@@ -108,6 +108,11 @@ def _print_live(report) -> None:
         skipped = f"; codes skipped {report.codes_skipped}" if report.codes_skipped is not None else ""
         skipped += f"; lost on the way to features {report.frames_lost}" if report.frames_lost else ""
         print(f"  dropped:           {drops}{skipped}")
+    if report.views_lost:
+        runs = ", ".join(f"{a}–{b}" if b > a else f"{a}" for a, b in report.views_lost)
+        frames = sum(b - a + 1 for a, b in report.views_lost)
+        print(f"  view lost:         frames {runs} ({frames} frames with no evidence in their view, posed by time "
+              "between their neighbours)")
     if report.end_of_stream_s is not None:
         print(f"  end of stream:     {report.end_of_stream_s:.1f} s from ingest's EOS to the last stage's")
     if report.services:

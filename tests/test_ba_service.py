@@ -2,6 +2,7 @@
 pose / intrinsics out, final graph and poses before the stage's EOS; bad input is counted, never fatal."""
 from __future__ import annotations
 
+import dataclasses
 import threading
 
 import numpy as np
@@ -11,11 +12,12 @@ from services.ba.settings import BaSettings
 from services.common import keys
 from services.common.bus import Bus
 from services.common.config import BusSettings
-from services.common.schema import Eos, Graph, Intrinsics, Keyframe, PcaBasis, Poses
+from services.common.schema import Eos, FrameLite, Graph, Intrinsics, Keyframe, PcaBasis, Poses
 from tests.conftest import wait_until
 from tests.test_ba_pipeline_synth import synth_stream
 
 STREAM = "t0"
+BLANK = (9, 10, 11)  # frames between two keyframes whose view goes blank
 
 
 def _settings() -> BaSettings:
@@ -71,6 +73,8 @@ def test_stream_over_zenoh(unix_endpoint):
                             codes=np.zeros((4, 4, 32), np.float16))  # fails validation on the receiving side
         bus.put(keys.topic(STREAM, keys.KEYFRAME), _encode_unchecked(bad_grid))
         for msg in msgs:
+            if isinstance(msg, FrameLite) and msg.seq in BLANK:  # a covered lens: reported, posed by time
+                msg = dataclasses.replace(msg, image=np.zeros_like(msg.image))
             bus.publish(keys.topic(STREAM, msg.KIND), msg)
         wait_until(lambda: any(isinstance(m, Eos) and m.stage == "ba" for m in list(got)), 240, "the ba EOS")
         stop.set()
@@ -84,6 +88,7 @@ def test_stream_over_zenoh(unix_endpoint):
     # (arrival order across keys is not guaranteed by Zenoh; the publish order is checked in the handler test)
     eos = got[eos_at]
     assert eos.seq == 16 and eos.count == 5, (state.rejected, [(type(m).__name__, m.seq) for m in got])
+    assert eos.views_lost.tolist() == [[min(BLANK), max(BLANK)]]
     assert len(graphs) >= 2 and graphs[-1].kf_seqs.tolist() == [0, 4, 8, 12, 16]
     assert got[final_poses].frame_seqs.tolist() == list(range(17))
     assert any(isinstance(m, Intrinsics) for m in got)

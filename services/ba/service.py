@@ -220,10 +220,11 @@ def handle_eos(state: BaState, msg: Eos, cfg: BaSettings) -> Outputs:
         log.exception("global BA failed; last online state stands", extra={"stream": msg.stream, "seq": msg.seq})
         state.rejected["global_ba"] += 1
         outputs = []
+    lost = state.frontend.frames.lost_views()
     eos = Eos(msg.stream, max(state.last_seq, msg.seq), time.time_ns(), stage="ba", count=state.keyframes,
-              reason=msg.reason, dropped=state.dropped)
+              reason=msg.reason, dropped=state.dropped, views_lost=np.array(lost, np.int64).reshape(-1, 2))
     log.info("stream done", extra={"stream": msg.stream, "keyframes": state.keyframes, "merged": state.merged,
-                                   "dropped": state.dropped})
+                                   "dropped": state.dropped, "views_lost": len(lost)})
     state.ended_upto = max(state.last_seq, msg.seq)
     state.final_outputs = outputs + [(keys.topic(msg.stream, keys.EOS), eos)]  # for a mapstore that restarts
     state.frontend = Frontend(state.frontend.params, state.frontend.device)

@@ -193,6 +193,9 @@ class Eos(Message):
     dropped: int = 0  # messages this stage dropped by its real-time policy (never keyframes, codes, bases, EOS)
     codes_skipped: int = 0  # features, real-time: keyframes the backbone skipped as stale (no codes sent)
     lost: int = 0  # frames the stage before announced that never arrived (lost on the way: Zenoh drops on congestion)
+    # ba: (first, last) frame seqs of each run of frames whose view held no evidence (covered, blank, a cut),
+    # posed by time between their neighbours
+    views_lost: Optional[np.ndarray] = field(default=None, metadata=arr("i8", (None, 2)))
 
 
 # --- mapstore queries (``kmvipe/<s>/map/<verb>``: the request is the query payload, the answer the reply) ---

@@ -116,6 +116,8 @@ def fill_report(report: "RunReport", observer: Observer, monitor: ResourceMonito
     if "features" in observer.eos:
         report.codes_skipped = observer.eos["features"].codes_skipped
         report.frames_lost = observer.eos["features"].lost
+    if "ba" in observer.eos and observer.eos["ba"].views_lost is not None:
+        report.views_lost = [[int(a), int(b)] for a, b in observer.eos["ba"].views_lost]
     if "ingest" in observer.eos_at and observer.last_stage in observer.eos_at:
         report.end_of_stream_s = round(observer.eos_at[observer.last_stage] - observer.eos_at["ingest"], 3)
     usage = monitor.report()

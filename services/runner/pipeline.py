@@ -87,6 +87,8 @@ class RunReport:
     drops: dict[str, int | None] = field(default_factory=dict)  # per stage, from its EOS (None: no EOS came)
     codes_skipped: int | None = None  # features, real time: keyframes the backbone skipped as stale
     frames_lost: int | None = None  # frames ingest sent that never reached features (Zenoh drops on congestion)
+    views_lost: list[list[int]] = field(default_factory=list)  # ba: [first, last] frame seqs of each run of frames
+    # whose view held no evidence (covered, blank, a cut), posed by time between their neighbours
     end_of_stream_s: float | None = None  # ingest's EOS → the last stage's EOS, as the runner saw them
     services: dict[str, dict[str, float]] = field(default_factory=dict)  # cpu_s, cpu_stream_s, rss_peak_mb
     rss_total_peak_mb: float = 0.0  # largest sum over the services of their RSS at one sample

@@ -100,3 +100,26 @@ def edge_targets(images: list[np.ndarray], edges: list[tuple[int, int]],
         if (i, j) not in done:
             done[(i, j)], done[(j, i)] = pair_targets(images[i], images[j], params)
     return (np.stack([done[e].target for e in edges]), np.stack([done[e].confidence for e in edges]))
+
+
+PHOTO_SIGMA = 0.5  # photometric disagreement (in image standard deviations) where confidence falls to exp(-1/2)
+
+
+def photometric_agreement(ref: np.ndarray, image: np.ndarray, target: np.ndarray, grid: int) -> np.ndarray:
+    """(h, w) weight in [0, 1]: how well the frame's intensity where each reference cell lands matches the cell.
+
+    Forward-backward consistency alone accepts any smooth flow, also the one DIS returns on a blank or
+    overexposed frame; brightness (each image normalised by its own mean and deviation, so exposure changes do
+    not count) is the evidence that the cell really is there. A frame with no contrast gets weight 0.
+    """
+    h, w = target.shape[:2]
+    ref_cells = cv2.resize(ref, (w, h), interpolation=cv2.INTER_AREA).astype(np.float32)
+    blurred = cv2.blur(image, (grid, grid)).astype(np.float32)
+    px = (target + 0.5) * grid - 0.5  # grid coordinates -> pixels of these images (docs/CONVENTIONS.md)
+    landed = cv2.remap(blurred, px[..., 0].astype(np.float32), px[..., 1].astype(np.float32), cv2.INTER_LINEAR,
+                       borderMode=cv2.BORDER_REPLICATE)
+    spread = float(blurred.std())
+    if spread < 1.0:
+        return np.zeros((h, w), np.float32)
+    diff = (ref_cells - ref_cells.mean()) / max(float(ref_cells.std()), 1.0) - (landed - blurred.mean()) / spread
+    return np.exp(-0.5 * (diff / PHOTO_SIGMA) ** 2).astype(np.float32)

@@ -44,6 +44,8 @@ class FrameRecord:
     measured: bool = False  # aligned with flow to its bracketing keyframes (not only where tracking put it)
     tracked_ref: int | None = None  # the keyframe tracking's flow into it starts from (in ``targets`` while held)
     resolved: bool = False  # solved again with tracking's flow against that keyframe as mapping refined it
+    blind: bool = False  # its flow to the keyframes held no evidence (a covered lens, a blank view, a cut): posed
+    # by time between its neighbours, and reported as a lost view
 
 
 def _around(seqs: list[int], seq: int) -> tuple[int | None, int | None]:
@@ -51,6 +53,17 @@ def _around(seqs: list[int], seq: int) -> tuple[int | None, int | None]:
     i = bisect_left(seqs, seq)
     after = i + (i < len(seqs) and seqs[i] == seq)
     return (seqs[i - 1] if i > 0 else None), (seqs[after] if after < len(seqs) else None)
+
+
+def merge_ranges(ranges: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    """Inclusive integer ranges merged where they overlap or touch, ascending."""
+    merged: list[tuple[int, int]] = []
+    for first, last in sorted(ranges):
+        if merged and first <= merged[-1][1] + 1:
+            merged[-1] = (merged[-1][0], max(merged[-1][1], last))
+        else:
+            merged.append((first, last))
+    return merged
 
 
 def interpolate(pose_a: torch.Tensor, pose_b: torch.Tensor, frac: float) -> torch.Tensor:
@@ -65,6 +78,7 @@ class FramePoses:
     def __init__(self, params: MotionParams):
         self.params = params
         self.frames: dict[int, FrameRecord] = {}
+        self._lost_before: list[tuple[int, int]] = []  # lost views among the frames dropped (lost_views)
 
     def add(self, record: FrameRecord) -> None:
         self.frames[record.seq] = record
@@ -93,7 +107,9 @@ class FramePoses:
             image = frame.image if frame.image.shape[:2] == size[::-1] else cv2.resize(
                 frame.image, size, interpolation=cv2.INTER_AREA if frame.image.shape[1] > size[0] else cv2.INTER_LINEAR)
             ft = core_flow.flow_targets(keyframe, image, params)
-            frame.targets[seq] = Targets(torch.from_numpy(ft.target), torch.from_numpy(ft.confidence))
+            # as tracking's: forward-backward consistency alone trusts DIS's smooth flow over a blank view
+            confidence = ft.confidence * core_flow.photometric_agreement(keyframe, image, ft.target, params.grid)
+            frame.targets[seq] = Targets(torch.from_numpy(ft.target), torch.from_numpy(confidence))
         return frame.targets[seq]
 
     def align(self, graph: KeyframeGraph, seq: int) -> torch.Tensor:
@@ -117,11 +133,13 @@ class FramePoses:
                            torch.stack([graph.disparity[k] for k in kfs]),
                            torch.stack([t.target for t in tg]).to(dev), torch.stack([t.confidence for t in tg]).to(dev),
                            graph.intrinsics, self.params)
-        pose = res.pose if res.ok else init
-        if not res.ok:
-            logger.info("frame kept its interpolated pose (weak flow)", extra={"seq": seq})
         frame.measured = True
-        return self._anchor(graph, frame, kfs[0], pose)
+        frame.blind = not res.ok
+        if frame.blind:
+            logger.info("frame posed by time: its flow to the keyframes holds no evidence", extra={"seq": seq})
+            between = self._between_neighbours(graph, frame)
+            return self._anchor(graph, frame, kfs[0], init if between is None else between)
+        return self._anchor(graph, frame, kfs[0], res.pose)
 
     def resolve(self, graph: KeyframeGraph, seq: int) -> torch.Tensor | None:
         """Solve tracked frame ``seq`` again with tracking's flow against its reference keyframe as the graph holds
@@ -151,7 +169,8 @@ class FramePoses:
     def _flowed(self, graph: KeyframeGraph) -> list[int]:
         """Seqs whose pose flow gave, ascending: the keyframes held and the frames tracked or aligned to them."""
         held = set(graph.seqs)
-        return sorted(held | {s for s, f in self.frames.items() if not f.interpolate_only and f.anchor in held})
+        return sorted(held | {s for s, f in self.frames.items()
+                              if not (f.interpolate_only or f.blind) and f.anchor in held})
 
     def _between_neighbours(self, graph: KeyframeGraph, frame: FrameRecord,
                             flowed: list[int] | None = None) -> torch.Tensor | None:
@@ -224,8 +243,15 @@ class FramePoses:
         self.interpolate_again(graph)
 
     def interpolated(self) -> list[int]:
-        """Frames posed by time alone (no flow of tracking's or mapping's), oldest first."""
-        return sorted(s for s, f in self.frames.items() if f.interpolate_only and f.anchor is not None)
+        """Frames posed by time alone (no flow of tracking's or mapping's, or none that held evidence), oldest
+        first."""
+        return sorted(s for s, f in self.frames.items() if (f.interpolate_only or f.blind) and f.anchor is not None)
+
+    def lost_views(self) -> list[tuple[int, int]]:
+        """(first, last) seqs of each run of frames whose view held no evidence, ascending: those dropped from
+        memory already (kept as ranges, so a camera covered for hours costs a few numbers) and those held."""
+        held = sorted(s for s, f in self.frames.items() if f.blind)
+        return merge_ranges(self._lost_before + [(s, s) for s in held])
 
     @staticmethod
     def _anchor(graph: KeyframeGraph, frame: FrameRecord, anchor: int, pose: torch.Tensor) -> torch.Tensor:
@@ -264,6 +290,7 @@ class FramePoses:
         """Forget every frame older than keyframe ``kf_seq`` (their keyframes left the graph; the poses last
         published for them are final). Returns how many were dropped."""
         old = [s for s in self.frames if s < kf_seq]
+        self._lost_before = merge_ranges(self._lost_before + [(s, s) for s in old if self.frames[s].blind])
         for s in old:
             del self.frames[s]
         return len(old)

@@ -75,29 +75,6 @@ def _extrapolate(t0: int, pose0: torch.Tensor, t1: int, pose1: torch.Tensor, sta
 # 3 % and 1.2 px, a pose one should not build on.
 TRACK_MIN_SHARE = 0.03
 TRACK_MAX_RMS = 1.0
-PHOTO_SIGMA = 0.5  # photometric disagreement (in image standard deviations) where confidence falls to exp(-1/2)
-
-
-def photometric_agreement(ref: np.ndarray, image: np.ndarray, target: np.ndarray, grid: int) -> np.ndarray:
-    """(h, w) weight in [0, 1]: how well the frame's intensity where each reference cell lands matches the cell.
-
-    Forward-backward consistency alone accepts any smooth flow, also the one DIS returns on a blank or
-    overexposed frame; brightness (each image normalised by its own mean and deviation, so exposure changes do
-    not count) is the evidence that the cell really is there. A frame with no contrast gets weight 0.
-    """
-    h, w = target.shape[:2]
-    ref_cells = cv2.resize(ref, (w, h), interpolation=cv2.INTER_AREA).astype(np.float32)
-    blurred = cv2.blur(image, (grid, grid)).astype(np.float32)
-    px = (target + 0.5) * grid - 0.5  # grid coordinates -> pixels of these images (docs/CONVENTIONS.md)
-    landed = cv2.remap(blurred, px[..., 0].astype(np.float32), px[..., 1].astype(np.float32), cv2.INTER_LINEAR,
-                       borderMode=cv2.BORDER_REPLICATE)
-    spread = float(blurred.std())
-    if spread < 1.0:
-        return np.zeros((h, w), np.float32)
-    diff = (ref_cells - ref_cells.mean()) / max(float(ref_cells.std()), 1.0) - (landed - blurred.mean()) / spread
-    return np.exp(-0.5 * (diff / PHOTO_SIGMA) ** 2).astype(np.float32)
-
-
 def propagate_disparity(pose_from: torch.Tensor, pose_to: torch.Tensor, disparity: torch.Tensor,
                         intrinsics: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Grid disparity ``(h, w)`` of camera ``pose_to`` from camera ``pose_from``'s ``(h, w)`` grid disparity: each
@@ -278,7 +255,7 @@ class Tracker:
         scale = self.params.flow_downscale
         init = induced_flow_field(ref.pose, guess, ref.disparity, ref.intrinsics, GRID // scale)
         ft = core_flow.flow_targets(small, grey, self.flow, init)
-        measured = torch.from_numpy((ft.confidence * photometric_agreement(small, grey, ft.target, self.flow.grid))
+        measured = torch.from_numpy((ft.confidence * core_flow.photometric_agreement(small, grey, ft.target, self.flow.grid))
                                     .astype(np.float32))
         # a carried-over depth says nothing where no point landed; the flow there is still good against a mapped one
         confidence = measured if ref.known is None else measured * ref.known.cpu().to(torch.float32)
