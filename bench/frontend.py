@@ -19,6 +19,7 @@ Usage:
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -159,6 +160,8 @@ def main() -> None:
     parser.add_argument("--track", action="store_true", help="pose every frame by tracking first (the live path)")
     parser.add_argument("--live", action="store_true", help="keyframes flagged real-time (mapping's live settings)")
     parser.add_argument("--map-lag", type=int, default=0, help="mapping runs this many keyframes behind tracking")
+    parser.add_argument("--blank", default=None, metavar="A-B",
+                        help="frames A to B (inclusive) go black, as a covered lens (a lost view)")
     args = parser.parse_args()
     tune_malloc_for_tensors()  # as the ba service does
     torch.set_num_threads(args.threads)
@@ -166,6 +169,9 @@ def main() -> None:
     setup_logging("bench-frontend", LogSettings(level="WARNING"))
     frames = [f for f in open_source(args.source).frames() if isinstance(f, SourceFrame)]
     frames = frames[args.first:][: args.max_frames]
+    if args.blank:
+        first, last = (int(v) for v in args.blank.split("-"))
+        frames = [dataclasses.replace(f, rgb=np.zeros_like(f.rgb)) if first <= f.index <= last else f for f in frames]
     run = run_frontend(frames, args.focal, args.kf_threshold, args.track, args.verbose, live=args.live,
                        map_lag=args.map_lag)
     est = run.trajectory()
@@ -177,6 +183,8 @@ def main() -> None:
     print("time in: " + ", ".join(f"{name} {sec:.1f} s ({calls} calls)" for name, (sec, calls) in spent.items()))
     rel = np.linalg.inv(poses[0]) @ poses
     angles = np.degrees(np.arccos(np.clip((np.trace(rel[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    lost = run.frontend.frames.lost_views()
+    print(f"view lost: {', '.join(f'{a}-{b}' for a, b in lost) if lost else 'none'}")
     print(f"drift from the first pose: max rotation {angles.max():.3f} deg, max translation "
           f"{np.linalg.norm(rel[:, :3, 3], axis=1).max():.4f} (map units)")
     ate = evaluate(args.source, est)
