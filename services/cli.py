@@ -111,8 +111,8 @@ def _print_live(report) -> None:
     if report.views_lost:
         runs = ", ".join(f"{a}–{b}" if b > a else f"{a}" for a, b in report.views_lost)
         frames = sum(b - a + 1 for a, b in report.views_lost)
-        print(f"  view lost:         frames {runs} ({frames} frames with no evidence in their view, posed by time "
-              "between their neighbours)")
+        print(f"  view lost:         frames {runs} ({frames} frame{'s' * (frames != 1)} whose view held no evidence, "
+              "posed by time between their neighbours)")
     if report.end_of_stream_s is not None:
         print(f"  end of stream:     {report.end_of_stream_s:.1f} s from ingest's EOS to the last stage's")
     if report.services:

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from services.cli import _print_summary
 from services.common.bus import Delivery
 from services.common.schema import Eos, Frame, Poses
 from services.runner.observer import Observer, fill_report
@@ -43,7 +44,7 @@ def _poses(seqs, tracked: bool, offset: float = 0.0, final: bool = False) -> Pos
                  final=final, tracked=tracked)
 
 
-def test_the_first_pose_of_each_frame_is_kept_and_frames_ingest_dropped_count_as_not_posed():
+def test_the_first_pose_of_each_frame_is_kept_and_frames_ingest_dropped_count_as_not_posed(capsys):
     observer = Observer(last_stage="ba")
     for seq in (0, 1, 3):  # ingest read 0..4, dropped 2 and 4
         _deliver(observer, _frame(seq))
@@ -52,8 +53,9 @@ def test_the_first_pose_of_each_frame_is_kept_and_frames_ingest_dropped_count_as
     _deliver(observer, _poses([0, 1, 3], tracked=False, offset=0.5))  # mapping's revision, later
     _deliver(observer, _poses([1], tracked=True, offset=9.0))  # a late tracking pose never wins over mapping
     for stage, dropped in (("ingest", 2), ("features", 1), ("ba", 0)):
+        lost = np.array([[1, 1]], np.int64) if stage == "ba" else None  # frame 1's view held no evidence
         _deliver(observer, Eos("cam0", 4, 0, stage=stage, count=3, dropped=dropped,
-                               codes_skipped=4 if stage == "features" else 0))
+                               codes_skipped=4 if stage == "features" else 0, views_lost=lost))
 
     report = RunReport("synth:", "cam0", ["ingest", "features", "ba"], [], duration_s=1.0)
     fill_report(report, observer, ResourceMonitor())
@@ -62,6 +64,9 @@ def test_the_first_pose_of_each_frame_is_kept_and_frames_ingest_dropped_count_as
     assert lat["n"] == 3 and 0 <= lat["p50"] <= lat["p99"] <= lat["max"]
     assert report.drops == {"ingest": 2, "features": 1, "ba": 0}  # only the stages that ran
     assert report.codes_skipped == 4
+    assert report.views_lost == [[1, 1]]
+    _print_summary(report)
+    assert "view lost:         frames 1 (1 frame whose view held no evidence" in capsys.readouterr().out
     assert report.end_of_stream_s is not None and report.end_of_stream_s >= 0
     # the first pose is the tracked one (x = seq), the latest the mapped one (x = seq + 0.5)
     assert observer.first_pose[1][2][0, 3] == 1.0 and observer.first_pose[3][2][0, 3] == 3.5
