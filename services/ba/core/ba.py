@@ -103,9 +103,9 @@ def _edges(prep: _Prepared, edges: slice) -> _Prepared:
                          confidence=prep.confidence[edges])
 
 
-def _edge_slices(n_edges: int, params: BAParams) -> list[slice]:
-    step = params.linearise_edges or n_edges
-    return [slice(start, min(start + step, n_edges)) for start in range(0, n_edges, max(step, 1))]
+def _sliced(n_edges: int, params: BAParams) -> bool:
+    """Whether a problem of ``n_edges`` forms its Jacobians slice by slice (``BAParams.linearise_edges``)."""
+    return 0 < params.linearise_edges < n_edges
 
 
 class _Residuals(NamedTuple):
@@ -222,7 +222,8 @@ def _linearised(state: BAState, prep: _Prepared, params: BAParams, frozen: _Froz
     if res.reproj.jac is not None:
         yield slice(0, len(prep.ii)), _normal_equations(res, params, frozen)
         return
-    for edges in _edge_slices(len(prep.ii), params):
+    n_edges, step = len(prep.ii), params.linearise_edges
+    for edges in (slice(start, min(start + step, n_edges)) for start in range(0, n_edges, step)):
         part = _residuals(state, _edges(prep, edges), params, with_jac=True)
         kern = robust.Kernel(*(None if t is None else t[edges] for t in frozen.kernel))
         yield edges, _normal_equations(part, params, _Frozen(frozen.alpha[edges], kern, frozen.embed_weight[edges]))
@@ -273,7 +274,7 @@ def run_ba(state: BAState, problem: BAProblem, params: BAParams,
     scale_anchor = params.fix_scale and not has_prior and params.fixed_poses == 1 and distance > 1e-9
     lm = params.lm_init
     prep = _prepare(problem, params, h, w)
-    whole = len(_edge_slices(len(prep.ii), params)) <= 1  # else the Jacobians are formed slice by slice
+    whole = not _sliced(len(prep.ii), params)  # the Jacobians of every edge at once, kept across rejected steps
     res = _residuals(state, prep, params, with_jac=whole)
     ark = _ark(res, prep, params, None)
     frozen = _frozen(res, params, ark)

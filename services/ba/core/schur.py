@@ -14,6 +14,7 @@ costs ``N * P * D^2`` instead of ``N * P * n_cam^2``.
 """
 from __future__ import annotations
 
+import itertools
 from typing import Iterable, NamedTuple
 
 import torch
@@ -119,7 +120,8 @@ def solve(eq: NormalEquations | Iterable[tuple[slice, NormalEquations]], ii: tor
         pose_eps, disp_eps: absolute diagonal damping of camera / disparity variables.
         prior_h, prior_g: ``(N, P)`` extra disparity diagonal and gradient (disparity prior; zeros if none).
     """
-    parts = [(slice(0, len(ii)), eq)] if isinstance(eq, NormalEquations) else eq
+    parts = iter([(slice(0, len(ii)), eq)] if isinstance(eq, NormalEquations) else eq)
+    first = next(parts, None)
     dtype, dev = prior_h.dtype, ii.device  # camera system and step dtype (float64 in BA)
     n_pix = prior_h.shape[1]
     n_cam = 6 * n_kf + 1
@@ -130,20 +132,15 @@ def solve(eq: NormalEquations | Iterable[tuple[slice, NormalEquations]], ii: tor
     expand = _expansion(dtype, dev)  # (13, 7): [xi_i, xi_j, f] from [xi_i, f]
     big_h = torch.zeros(n_ext * n_ext, dtype=dtype, device=dev)
     big_g = torch.zeros(n_ext, dtype=dtype, device=dev)
-    h_dd = g_d = coupling = None
-    for edges, part in parts:
-        pix_dtype = part.j_disp.dtype
-        if coupling is None:
-            h_dd = torch.zeros(n_kf, n_pix, dtype=pix_dtype, device=dev)
-            g_d = torch.zeros(n_kf, n_pix, dtype=pix_dtype, device=dev)
-            coupling = torch.zeros(n_kf, width, n_pix, dtype=pix_dtype, device=dev)
+    pix_dtype = dtype if first is None else first[1].j_disp.dtype  # per-pixel sums stay in the Jacobians' dtype
+    h_dd = torch.zeros(n_kf, n_pix, dtype=pix_dtype, device=dev)
+    g_d = torch.zeros(n_kf, n_pix, dtype=pix_dtype, device=dev)
+    coupling = torch.zeros(n_kf, width, n_pix, dtype=pix_dtype, device=dev)
+    for edges, part in itertools.chain([first] if first is not None else [], parts):
         _add_edges(part, ii[edges], jj[edges], slot[edges], n_kf, n_ext, expand=expand,
                    big_h=big_h, big_g=big_g, h_dd=h_dd, g_d=g_d, coupling=coupling)
-    if coupling is None:  # no edge: only the damping and the prior
-        h_dd = g_d = torch.zeros(n_kf, n_pix, dtype=dtype, device=dev)
-        coupling = torch.zeros(n_kf, width, n_pix, dtype=dtype, device=dev)
-    h_dd = h_dd + prior_h.to(h_dd.dtype)
-    g_d = g_d + prior_g.to(g_d.dtype)
+    h_dd = h_dd + prior_h.to(pix_dtype)
+    g_d = g_d + prior_g.to(pix_dtype)
     big_h = big_h.view(n_ext, n_ext)
     colmap = torch.full((n_kf, width), n_cam, dtype=torch.long, device=dev)
     colmap[:, :6] = 6 * torch.arange(n_kf, device=dev)[:, None] + ar6
