@@ -2,8 +2,8 @@
 
 Keyframes whose pose or depth changed — and their consistency neighbours, whose check depends on them — are
 marked dirty; `refresh()` re-fuses exactly those by subtracting their old contribution and adding the new one.
-The earlier keyframes a changed keyframe may carve (core/carving.py) are re-checked first: only those whose
-carved cells changed are re-fused.
+The earlier keyframes a changed keyframe may carve (core/carving.py; which carve which: core/carving_views.py)
+are re-checked first: only those whose carved cells changed are re-fused.
 
 Codes stay in the PCA version each keyframe was coded with; the fused map is in one version, `code_version`
 (the latest basis), reached from each keyframe's own version by one affine map (`set_code_space`). A keyframe
@@ -36,10 +36,11 @@ from typing import NamedTuple
 
 import numpy as np
 
-from services.common.pca_codes import CodeMap, code_map, convert_codes, identity_map
+from services.common.pca_codes import CodeMap, code_map, identity_map
 from services.mapstore.config import MapParams
-from services.mapstore.core.carving import CarveView, free_space_votes, unit_codes
+from services.mapstore.core.carving import CarveView
 from services.mapstore.core.consistency import NeighbourView, depth_consistency
+from services.mapstore.core.carving_views import Carving
 from services.mapstore.core.folding import Folding
 from services.mapstore.core.fusion import Contribution, FrozenSums, FusedVoxels, VoxelGrid, make_contribution
 from services.mapstore.core.keyframe import KeyframeContent, KeyframeDepth, candidate_points, world_points
@@ -73,7 +74,7 @@ def code_maps_to_latest(bases: dict[int, PcaBasis]) -> tuple[int, dict[int, Code
     return latest, {v: identity_map(b.rank) if v == latest else code_map(b, bases[latest]) for v, b in bases.items()}
 
 
-class KeyframeMap(Folding):
+class KeyframeMap(Carving, Folding):
     """Mutable map state; no I/O. Feed it keyframe content, depths and poses, then `refresh()`."""
 
     def __init__(self, params: MapParams, voxel_size: float | None = None, versioned: bool = False,
@@ -236,46 +237,6 @@ class KeyframeMap(Folding):
         after = pos + 1 if pos < len(self._ready) and self._ready[pos] == kf_id else pos
         return self._ready[max(0, pos - n) : pos] + self._ready[after : after + n]
 
-    def _earlier(self, kf_id: int) -> list[int]:
-        """The live ready keyframes before `kf_id` whose points it may carve (folded ones are final)."""
-        pos = bisect_left(self._ready, kf_id)
-        return [k for k in self._ready[max(0, pos - self.params.carving.later_keyframes) : pos] if k > self.folded_upto]
-
-    def _later(self, kf_id: int) -> list[int]:
-        """The ready keyframes after `kf_id` that may carve its points, most recent first."""
-        pos = bisect_left(self._ready, kf_id)
-        after = pos + 1 if pos < len(self._ready) and self._ready[pos] == kf_id else pos
-        return self._ready[after : after + self.params.carving.later_keyframes][::-1]
-
-    def _carve_view(self, kf_id: int) -> CarveView:
-        """A keyframe as a carving witness; cached, as each witnesses for up to `later_keyframes` earlier ones."""
-        if kf_id not in self._views:
-            self._views[kf_id] = self._make_carve_view(kf_id)
-        return self._views[kf_id]
-
-    def _make_carve_view(self, kf_id: int) -> CarveView:
-        d = self.depths[kf_id]
-        reliability = None
-        if d.static_weight is not None or d.confidence is not None:
-            ones = np.ones(d.disparity.shape, np.float64)
-            reliability = ((ones if d.confidence is None else d.confidence)
-                           * (ones if d.static_weight is None else d.static_weight))
-        codes = self._fused_space_codes(kf_id) if self.params.carving.semantic else None
-        return CarveView(np.linalg.inv(self.poses[kf_id]), d.disparity, d.intrinsics, reliability, codes)
-
-    def _fused_space_codes(self, kf_id: int) -> np.ndarray | None:
-        """(h, w, K) float32 unit codes of a keyframe in the fused map's code space (cached until its content or
-        the code space changes), None without codes; an unversioned map compares codes as they come."""
-        if kf_id not in self._unit_codes:
-            content = self.contents[kf_id]
-            if not content.has_codes:
-                self._unit_codes[kf_id] = None
-            else:
-                cmap = self._code_maps.get(content.pca_version)
-                codes = content.codes if cmap is None or cmap.is_identity else convert_codes(content.codes, cmap)
-                self._unit_codes[kf_id] = unit_codes(codes)
-        return self._unit_codes[kf_id]
-
     # ----- fusion -------------------------------------------------------------------------
     @property
     def dirty(self) -> set[int]:
@@ -300,22 +261,6 @@ class KeyframeMap(Folding):
         codes = None if content.codes is None else content.codes.reshape(-1, content.codes.shape[2])[cells]
         points = KeyframePoints(cells, xyz[keep], weight[keep], codes, content.colours.reshape(-1, 3)[cells])
         return points, cand.cells[carved]
-
-    def _carved_mask(self, xyz: np.ndarray, cells: np.ndarray, kf_id: int) -> np.ndarray:
-        """(C,) bool: which of a keyframe's candidate points (world xyz (C, 3), flat cells (C,)) are carved."""
-        views = [self._carve_view(j) for j in self._later(kf_id)]
-        codes = None
-        own = self._fused_space_codes(kf_id) if self.params.carving.semantic else None
-        if own is not None:  # a keyframe without codes is carved on depth evidence alone
-            codes = own.reshape(-1, own.shape[2])[cells]
-        return free_space_votes(xyz, views, self.params.carving, codes).carved
-
-    def _carving_changed(self, kf_id: int) -> bool:
-        """Whether a fused keyframe's carved cells differ now from when it was fused (its own pose/depth unchanged)."""
-        cand = candidate_points(self.depths[kf_id], self.params.points)
-        xyz = world_points(cand.points_cam, self.poses[kf_id])
-        carved = cand.cells[self._carved_mask(xyz, cand.cells, kf_id)]
-        return not np.array_equal(carved, self._carved.get(kf_id))
 
     def _ensure_voxel_size(self, first_kf: int) -> None:
         if self.voxel_size is not None:
