@@ -156,6 +156,8 @@ def main() -> None:
     parser.add_argument("--focal", type=float, default=None, help="start focal (original px); default: FOV prior")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--verbose", action="store_true", help="print every keyframe's last steps")
+    parser.add_argument("--log-level", default="WARNING", choices=["DEBUG", "INFO", "WARNING", "ERROR"],
+                        help="INFO shows the graph's decisions (keyframes removed, edges, BA refusals)")
     parser.add_argument("--out", type=Path, default=None, help="write the TUM trajectory here")
     parser.add_argument("--track", action="store_true", help="pose every frame by tracking first (the live path)")
     parser.add_argument("--live", action="store_true", help="keyframes flagged real-time (mapping's live settings)")
@@ -166,7 +168,7 @@ def main() -> None:
     tune_malloc_for_tensors()  # as the ba service does
     torch.set_num_threads(args.threads)
     spent = _instrument()
-    setup_logging("bench-frontend", LogSettings(level="WARNING"))
+    setup_logging("bench-frontend", LogSettings(level=args.log_level))
     frames = [f for f in open_source(args.source).frames() if isinstance(f, SourceFrame)]
     frames = frames[args.first:][: args.max_frames]
     if args.blank:
