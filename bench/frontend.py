@@ -102,7 +102,7 @@ def run_frontend(frames: list[SourceFrame], focal: float | None = None,
             lite = cv2.resize(work, (work.shape[1] // 2, work.shape[0] // 2), interpolation=cv2.INTER_AREA)
             tracked = None if anchor is None else anchor[:2]
             world = anchor[2] if anchor is not None and live else None
-            flow = None if anchor is None or not live else (anchor[0], *anchor[3])
+            flow = None if anchor is None or not live or anchor[3] is None else (anchor[0], *anchor[3])
             keep(frontend.add_frame(FrameInput(frame.index, frame.t_ns, lite, tracked, tracked_world=world,
                                                tracked_flow=flow)))
             return
@@ -215,7 +215,8 @@ def _track(tracker: Tracker | None, frame: SourceFrame, work: np.ndarray, intrin
     first.setdefault(frame.index, (frame.t_ns, out.pose.numpy()))
     if not out.ok:
         return None
-    return out.ref_seq, se3.inverse(tracker.reference.pose) @ out.pose, out.pose, (out.target, out.confidence)
+    flow = None if out.target is None else (out.target, out.confidence)  # a relocalised pose carries no flow
+    return out.ref_seq, se3.inverse(tracker.reference.pose) @ out.pose, out.pose, flow
 
 
 def _instrument() -> dict[str, list]:

@@ -38,6 +38,18 @@ def test_threshold_decides_and_reference_moves():
     assert flags == [True, False, False, False, False, True, False, False, False, False, True, False]
 
 
+def test_a_covered_lens_makes_no_keyframe_and_the_first_view_after_it_is_one():
+    """Frames that show nothing (black) are never keyframes, whatever DIS makes of them; the first frame that
+    shows something again is one even without motion, since the flow chained over the blank frames is lost."""
+    big = _scene()
+    view = np.ascontiguousarray(big[40:280, 40:360])
+    frames = [view] * 3 + [np.zeros_like(view)] * 3 + [view] * 3
+    sel = KeyframeSelector()
+    decisions = [sel.observe(f) for f in frames]
+    assert [d.is_keyframe for d in decisions] == [True, False, False, False, False, False, True, False, False]
+    assert all(d.motion_grid_px == 0.0 for d in decisions[3:6])
+
+
 def test_robust_mean_ignores_a_small_fast_region():
     values = np.zeros((30, 40))
     values[:5, :10] = 50.0  # 4 % of the cells move a lot

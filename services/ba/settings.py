@@ -16,7 +16,7 @@ from pydantic_settings import SettingsConfigDict
 from services.ba.core.params import FlowParams
 
 from services.ba.config import BASettings
-from services.ba.frontend.params import FrontendParams, GraphParams, InitParams, MotionParams
+from services.ba.frontend.params import FrontendParams, GraphParams, InitParams, MotionParams, RelocaliseParams
 
 if TYPE_CHECKING:  # both import torch: only where a tracker is made
     from services.ba.frontend.tracker import Tracker
@@ -114,6 +114,12 @@ class BaSettings(BASettings):
     tracking_process: bool = True
     """Frame-rate tracking in a child process of its own (its own interpreter: it never waits for mapping's BA,
     and mapping gets the second core); False: a thread of the ba process, sharing mapping's interpreter."""
+    relocalise_below_share: float = RelocaliseParams.below_share
+    """Mapping aligns a keyframe again from a PnP pose (ORB against the keyframe before it) when the flow from its
+    prediction keeps less than this share of the grid (0: never); see frontend/relocalise.py."""
+    tracking_relocalise_below_share: float = RelocaliseParams.track_below_share
+    """Tracking tries a PnP pose from a frame it could not track (a lost view) until its prediction's flow keeps
+    this share of the grid again; 0: never."""
     tracking_nice: int = 0
     """Niceness of the tracking thread (Linux; per thread). Tracking comes first on a shared CPU."""
     mapping_nice: int = 5
@@ -159,8 +165,9 @@ class BaSettings(BASettings):
     def tracker_factory(self) -> "Callable[[], Tracker]":
         """A picklable factory of the tracker (a child process builds its own)."""
         from services.ba.frontend.tracker import Tracker
-        return functools.partial(Tracker, self.frontend_params().motion, self.tracking_flow_params(),
-                                 self.tracking_promote_after)
+        params = self.frontend_params()
+        return functools.partial(Tracker, params.motion, self.tracking_flow_params(), self.tracking_promote_after,
+                                 params.relocalise)
 
     def tracking_flow_params(self) -> FlowParams:
         """Flow parameters of the tracker: cheaper than the window's (it runs on every frame)."""
@@ -184,4 +191,8 @@ class BaSettings(BASettings):
             live_window=self.live_window, live_flow_preset=self.live_flow_preset,
             live_calibration=self.live_calibration, background_ba_every=self.background_ba_every,
             background_ba_s=self.background_ba_s,
-            global_ba_s=self.global_ba_s)
+            global_ba_s=self.global_ba_s, relocalise=self.relocalise_params())
+
+    def relocalise_params(self) -> RelocaliseParams:
+        return RelocaliseParams(below_share=self.relocalise_below_share,
+                                track_below_share=self.tracking_relocalise_below_share)

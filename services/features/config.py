@@ -88,6 +88,8 @@ class FeaturesSettings(KmVipeSettings):
     keyframe_threshold_grid_px: float = KeyframeParams.threshold_grid_px
     flow_scale: float = KeyframeParams.flow_scale
     outlier_fraction: float = KeyframeParams.outlier_fraction
+    min_texture: float = KeyframeParams.min_texture
+    """A frame with less texture than this shows nothing (a covered lens): never a keyframe (KeyframeParams)."""
     scales: tuple[float, ...] | None = None
     """DINO pyramid scales; None = the paper's full pyramid on CUDA, :data:`CPU_SCALES` on a CPU (the full
     pyramid costs ~20 s per keyframe on 2 CPU cores — see docs/BENCHMARKS.md)."""
@@ -123,7 +125,7 @@ class FeaturesSettings(KmVipeSettings):
             resolution=ResolutionParams(target_area=self.target_area, fov_deg=self.fov_deg),
             keyframes=KeyframeParams(
                 threshold_grid_px=self.keyframe_threshold_grid_px, flow_scale=self.flow_scale,
-                outlier_fraction=self.outlier_fraction,
+                outlier_fraction=self.outlier_fraction, min_texture=self.min_texture,
             ),
             pyramid=PyramidParams(scales=self.pyramid_scales(on_cuda), patch_size=patch_size),
             pca=PcaParams(n_components=self.pca_components, fit_keyframes=self.pca_fit_keyframes,

@@ -156,6 +156,15 @@ class KeyframeGraph:
                                    Targets(torch.from_numpy(back.target), torch.from_numpy(back.confidence)))
         return self._cache[key]
 
+    def take_flows(self, i: int, j: int) -> dict[tuple[int, int], Targets]:
+        """Remove and return the cached targets between keyframes ``i`` and ``j`` (both directions): the next
+        :meth:`targets` computes them afresh, from the flow the poses then induce. :meth:`put_flows` keeps them."""
+        keys = ((self.seqs[i], self.seqs[j]), (self.seqs[j], self.seqs[i]))
+        return {key: self._cache.pop(key) for key in keys if key in self._cache}
+
+    def put_flows(self, flows: dict[tuple[int, int], Targets]) -> None:
+        self._cache.update(flows)
+
     def _image(self, k: int) -> np.ndarray:
         """Keyframe ``k``'s grey image at 1/flow_downscale of the working size."""
         if self.flow_downscale == 1:

@@ -40,6 +40,23 @@ class InitParams:
 
 
 @dataclass(frozen=True)
+class RelocaliseParams:
+    """A keyframe's pose from ORB features and PnP against the keyframe before it, when the flow from its motion
+    prediction barely supports the pose (a lost view, a whip pan): services.ba.frontend.relocalise."""
+
+    below_share: float = 0.3  # mapping tries the PnP start (0: never) when its alignment keeps less than this share of the
+    # grid cells (the synthetic orbit: 0.70-0.98 per keyframe, the keyframe after a 20-frame blank 0.09)
+    track_below_share: float = 0.15  # tracking tries it from a frame it could not track until a frame's flow
+    # from the prediction keeps this share again (KITTI 07: 1 % of frames below; the synthetic orbit's frames
+    # 30+ frames from their reference after a blank: 0.04-0.07); 0: never
+    features: int = 1500  # ORB keypoints per image
+    ratio: float = 0.8  # Lowe's ratio test on the two nearest Hamming matches
+    reprojection_px: float = 3.0  # PnP RANSAC inlier threshold, working pixels
+    min_inliers: int = 30  # fewer: no pose (a view that shares too little with the keyframe)
+    iterations: int = 500  # RANSAC iterations
+
+
+@dataclass(frozen=True)
 class GraphParams:
     """Edges of the keyframe graph."""
 
@@ -62,6 +79,7 @@ class FrontendParams:
     graph: GraphParams = field(default_factory=GraphParams)
     init: InitParams = field(default_factory=InitParams)
     motion: MotionParams = field(default_factory=MotionParams)
+    relocalise: RelocaliseParams = field(default_factory=RelocaliseParams)
     ba: BAParams = field(default_factory=lambda: BAParams(iterations=3, optimise_focal=True))  # per new keyframe
     global_ba: BAParams = field(default_factory=lambda: BAParams(iterations=10, optimise_focal=True))  # end
     global_ba_s: float = 0.0  # the end-of-stream BA stops after the iteration that passes this many seconds (0:
