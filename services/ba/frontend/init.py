@@ -154,7 +154,7 @@ def start_map(graph: KeyframeGraph, params: InitParams, ba_params: BAParams, mot
     if not candidates:
         if not force:
             return None
-        logger.warning("two-view start failed at end of stream; keyframes keep identity poses")
+        logger.debug("forced two-view start: no candidate motion")
         return float("inf")
     iterations = dataclasses.replace(ba_params, iterations=params.iterations)
     best, costs = candidates[0], []

@@ -30,9 +30,12 @@ def try_start(graph: KeyframeGraph, frames: FramePoses, params: FrontendParams, 
     if not force and init.turning(graph, params.init):
         init.start_static(graph)
         return TURNING
-    if init.start_map(graph, params.init, ba, params.motion, force) is None:
+    cost = init.start_map(graph, params.init, ba, params.motion, force)
+    if cost is None:
         slide_window(graph, frames, params.init)
         return None
+    if cost == float("inf"):
+        logger.warning("two-view start failed at end of stream; keyframes keep identity poses")
     return TWO_VIEW
 
 
