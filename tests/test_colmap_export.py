@@ -8,7 +8,7 @@ import pycolmap
 import pytest
 
 from services.mapstore.core.keyframe import KeyframeDepth
-from services.mapstore.export import ColmapImage, ColmapParams, export_all, read_colmap
+from services.mapstore.export import ColmapImage, ColmapParams, ColmapWriter, export_all, read_colmap, visible_points
 from services.synth import SynthConfig, SynthWorld
 
 KEYFRAMES = (0, 4, 8, 12, 16, 20)
@@ -142,6 +142,24 @@ def test_the_cap_keeps_the_same_points_in_every_image(tmp_path, scene):
     # the same ones: most of what is kept is tracked
     # measured: 98 % of the cap; 10 % with a cap drawn anew per image
     assert sum(im.num_points2D() for im in rec.images.values()) >= 0.8 * len(rec.images) * cap
+
+
+def test_the_capped_points_are_the_first_visible_ones_of_the_fixed_order(tmp_path, scene):
+    """The writer searches the map in its fixed order a chunk at a time and stops at the cap: what it keeps is
+    what a test of every point would keep. Far points that no keyframe sees make each keyframe see under 1/8 of
+    the map, so the search runs past its first chunk (8 x the cap)."""
+    _, xyz, rgb, depths, cameras = scene
+    far = np.random.default_rng(1).normal(size=(10 * len(xyz), 3)) + 1000.0
+    points = np.concatenate([xyz, far])
+    cap = 20
+    writer = ColmapWriter(tmp_path, points, np.zeros((len(points), 3), np.uint8),
+                          ColmapParams(max_points_per_image=cap))
+    for k in KEYFRAMES:
+        writer.add(cameras[k], depths[k])
+    for (im, kept), k in zip(writer._images, KEYFRAMES):
+        every = visible_points(points, np.linalg.inv(im.world_from_cam), depths[k], ColmapParams().rel_depth_tolerance)
+        assert cap < len(every) < len(points) / 8
+        np.testing.assert_array_equal(kept, np.sort(every[np.argsort(writer._rank[every])[:cap]]))
 
 
 def test_a_model_without_map_points_is_read_too(tmp_path, scene):
