@@ -156,10 +156,11 @@ def test_the_capped_points_are_the_first_visible_ones_of_the_fixed_order(tmp_pat
                           ColmapParams(max_points_per_image=cap))
     for k in KEYFRAMES:
         writer.add(cameras[k], depths[k])
+    rank = np.argsort(writer._order)  # each point's place in the writer's fixed order
     for (im, kept), k in zip(writer._images, KEYFRAMES):
         every = visible_points(points, np.linalg.inv(im.world_from_cam), depths[k], ColmapParams().rel_depth_tolerance)
         assert cap < len(every) < len(points) / 8
-        np.testing.assert_array_equal(kept, np.sort(every[np.argsort(writer._rank[every])[:cap]]))
+        np.testing.assert_array_equal(kept, np.sort(every[np.argsort(rank[every])[:cap]]))
 
 
 def test_a_model_without_map_points_is_read_too(tmp_path, scene):

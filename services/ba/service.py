@@ -225,7 +225,7 @@ def handle_eos(state: BaState, msg: Eos, cfg: BaSettings) -> Outputs:
               reason=msg.reason, dropped=state.dropped, views_lost=np.array(lost, np.int64).reshape(-1, 2))
     log.info("stream done", extra={"stream": msg.stream, "keyframes": state.keyframes, "merged": state.merged,
                                    "dropped": state.dropped, "views_lost": len(lost),
-                                   "keyframes_relocalised": len(state.frontend.relocalised)})
+                                   "keyframes_relocalised": state.frontend.relocalised})
     state.ended_upto = max(state.last_seq, msg.seq)
     state.final_outputs = outputs + [(keys.topic(msg.stream, keys.EOS), eos)]  # for a mapstore that restarts
     state.frontend = Frontend(state.frontend.params, state.frontend.device)

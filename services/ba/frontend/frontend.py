@@ -48,7 +48,7 @@ class Frontend:
         self._size = (0, 0)
         self._calibrated = False  # the multi-start focal calibration ran (start.calibrate_focal)
         self._live = False  # the newest keyframe came from a real-time stream
-        self.relocalised: list[int] = []  # seqs of keyframes aligned from a PnP start (relocalise.realign_keyframe)
+        self.relocalised = 0  # keyframes aligned from a PnP start (relocalise.realign_keyframe)
         self._deferred = 0  # keyframes in a row whose window BA was left to a later keyframe
         self._since_global = 0  # keyframes joined since the last BA over every held keyframe (refine_globally)
         self._carried: dict[int, torch.Tensor] = {}  # deferred keyframe seq -> (h, w) 1 where its carried-over
@@ -286,8 +286,7 @@ class Frontend:
         res = motion.align(g.poses[k], g.poses[k - 1][None], g.disparity[k - 1][None], t.target[None].to(self.device),
                            t.confidence[None].to(self.device), g.intrinsics, self.params.motion)
         aligned, res = res, relocalise.realign_keyframe(g, k, res, self.params.motion, self.params.relocalise)
-        if res is not aligned:
-            self.relocalised.append(g.seqs[k])
+        self.relocalised += res is not aligned
         pose = res.pose if res.ok else g.poses[k]
         if not steps.plausible(g, pose, k, self.params.max_step_growth):
             logger.info("keyframe pose implausible; bounded constant-velocity prediction kept",

@@ -18,14 +18,11 @@ import numpy as np
 import torch
 
 from services.ba.frontend import motion
-from services.ba.frontend.graph import KeyframeGraph
+from services.ba.frontend.graph import GRID, KeyframeGraph, working_intrinsics
 from services.ba.frontend.motion import MotionResult
 from services.ba.frontend.params import MotionParams, RelocaliseParams
-from services.common.camera import scale_intrinsics
 
 logger = logging.getLogger(__name__)
-
-GRID = 8  # working pixels per grid cell (docs/CONVENTIONS.md)
 
 
 class Relocalised(NamedTuple):
@@ -98,7 +95,7 @@ def pose_from_features(ref: Features, ref_pose: torch.Tensor, ref_disparity: tor
 
 def _working_k(grid_k: torch.Tensor) -> np.ndarray:
     """Camera matrix at the working size from the (4,) grid intrinsics."""
-    fx, fy, cx, cy = scale_intrinsics(grid_k.detach().cpu().numpy(), GRID, GRID)
+    fx, fy, cx, cy = working_intrinsics(grid_k)
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
 

@@ -105,6 +105,12 @@ def propagate_disparity(pose_from: torch.Tensor, pose_to: torch.Tensor, disparit
             filled.reshape(h, w).to(disparity.dtype))
 
 
+def _holds(res: motion.MotionResult, cells: int) -> bool:
+    """Tracking's checks of an alignment: solved, finite, on enough of the grid and with a small enough residual."""
+    return (res.ok and res.weight >= TRACK_MIN_SHARE * cells and res.rms <= TRACK_MAX_RMS
+            and bool(torch.isfinite(res.pose).all()))
+
+
 class Tracker:
     """Aligns frames in arrival order; feed references with :meth:`set_reference` as mapping produces them."""
 
@@ -274,8 +280,7 @@ class Tracker:
                 # found again once the prediction's own flow holds a frame
                 self.lost = out.target is None or res.weight < below * cells
                 return out
-        ok = (res.ok and res.weight >= TRACK_MIN_SHARE * cells and res.rms <= TRACK_MAX_RMS
-              and bool(torch.isfinite(res.pose).all()))
+        ok = _holds(res, cells)
         pose = res.pose if ok else guess
         # the flow goes with the pose: mapping can solve the frame again against the reference's refined depth
         # without a flow of its own (frames.FramePoses.align)
@@ -305,8 +310,7 @@ class Tracker:
         from_pnp = again[0].ok and (not res.ok or again[0].weight > res.weight)
         if from_pnp:
             res, ft, measured = again
-        trusted = (res.ok and bool(torch.isfinite(res.pose).all()) and res.rms <= TRACK_MAX_RMS
-                   and res.weight >= TRACK_MIN_SHARE * cells)
+        trusted = _holds(res, cells)
         if trusted and res.weight < self.relocalise.track_below_share * cells:
             flows = [induced_flow_field(ref.pose, pose, ref.disparity, ref.intrinsics, GRID // scale)
                      for pose in (found.pose, res.pose)]
