@@ -155,7 +155,12 @@ def test_spare_time_runs_the_global_ba_once_enough_keyframes_joined_and_never_fo
     assert last.updated_seqs.tolist() == last.kf_seqs.tolist() == fe.graph.seqs  # every keyframe revised
     rmse, length = ate_of(world, last.kf_seqs, last.poses)
     assert rmse < 0.01 * length
-
+    # the end of stream only settles what the background BAs refined: its BA is bounded in time then
+    bounds = []
+    fe._global_ba = lambda bound, run=fe._global_ba: bounds.append(bound) or run(bound)
+    fe.finish()
+    assert bounds == [params.settled_global_ba_s] and params.settled_global_ba_s > 0
+    assert params.global_ba_s == 0 and live._end_bound_s() == 0  # unbounded where no background BA ran
 
 
 def test_end_of_stream_solves_every_measured_frame_again_with_the_flow_it_has():
@@ -280,11 +285,17 @@ def test_end_of_stream_solves_every_tracked_frame_again_before_measuring(tracked
     world, fe = tracked_live
     done = _copy(fe, final_align_s=1e9)
     order, measured = [], []
-    for step in ("resolve", "measure"):
-        original = getattr(done.frames, step)
-        setattr(done.frames, step, lambda g, seq, step=step, original=original: order.append(step) or original(g, seq))
-    original_measure = done.frames.measure
-    done.frames.measure = lambda g, seq: measured.append(seq) or original_measure(g, seq)
+    # resolve_many solves tracked frames in batches, measure one frame with new flows, align_many measured frames
+    # again in batches
+    for method, step in (("resolve_many", "resolve"), ("measure", "measure"), ("align_many", "measure")):
+        original = getattr(done.frames, method)
+
+        def recorded(g, seqs, step=step, original=original):
+            many = isinstance(seqs, list)
+            order.extend([step] * (len(seqs) if many else 1))
+            measured.extend((seqs if many else [seqs]) if step == "measure" else [])
+            return original(g, seqs)
+        setattr(done.frames, method, recorded)
     tracked = fe.frames.resolvable()
     spans = fe.frames.flow_spans(fe.graph, fe.frames.unmeasured())
     assert {spans[s] for s in tracked} == {1, 2, 3} and {spans[s] for s in fe.frames.interpolated()} <= {2, 3}

@@ -329,6 +329,9 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
                     ref = state.frontend.reference()
                     if ref is not None:
                         tracking.set_reference(ref)
+                    if cfg.background_ba_when_busy and not msg.realtime and mapping.qsize():
+                        for key, out in _refine_globally(state):  # when due; idle mapping runs it anyway
+                            bus.publish(key, out)
                     if checkpoints.due():
                         checkpoints.save(state)
                     release.maybe()  # between two keyframes' BAs: no temporaries alive
@@ -376,8 +379,9 @@ def _refine_while_idle(state: BaState, inboxes: tuple[Inbox, ...], cfg: BaSettin
 
 
 def _refine_globally(state: BaState) -> Outputs:
-    """Nothing else to do: the BA over every held keyframe, when one is due (``Frontend.refine_globally``); its
-    graph and poses go out as revisions."""
+    """The BA over every held keyframe, when one is due (``Frontend.refine_globally``): in mapping's spare time,
+    and on a lossless stream also after a keyframe while more wait (``background_ba_when_busy``); its graph and
+    poses go out as revisions."""
     try:
         update = state.frontend.refine_globally()
     except (ValueError, RuntimeError) as exc:  # optional work: the window's state stands

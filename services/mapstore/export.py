@@ -9,6 +9,9 @@ that view). POINT3D_ID is the point's row in map.ply + 1. COLMAP puts pixel cent
 [0, W]); ours are at integers (docs/CONVENTIONS.md), so principal points and 2D points gain 0.5 on the way out.
 The files are written here, not by pycolmap: their layouts are a few documented records, and pycolmap (COLMAP
 compiled) would be a large runtime dependency of the mapstore; tests/test_colmap_export.py reads them with it.
+Both files are streamed a record at a time and the text's numbers formatted a batch at a time
+(:mod:`services.common.number_text`): a long stream's model holds ~5 M observations, 9 s of `repr` and ~200 MB
+of text held whole before. 2D points are written to 1e-6 px, the same in the text and the binary model.
 """
 
 from __future__ import annotations
@@ -17,11 +20,12 @@ import logging
 import struct
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple
+from typing import Iterable, Iterator, NamedTuple
 
 import cv2
 import numpy as np
 from services.common import ply
+from services.common.number_text import format_rows
 from services.common.rotations import quaternion_wxyz, rotation_from_wxyz
 from services.mapstore.core.geometry import grid_intrinsics, project, transform_points
 from services.mapstore.core.keyframe import KeyframeDepth
@@ -136,6 +140,7 @@ _POINT2D_BIN = np.dtype([("x", "<f8"), ("y", "<f8"), ("point3D_id", "<i8")])
 _POINT3D_BIN = np.dtype([("id", "<u8"), ("xyz", "<f8", 3), ("rgb", "u1", 3), ("error", "<f8"), ("length", "<u8")])
 _TRACK_BIN = np.dtype([("image_id", "<i4"), ("point2D_idx", "<i4")])
 PINHOLE_MODEL_ID = 1
+POINT2D_DECIMALS = 6  # 2D points in pixels to 1e-6 px, in the text and the binary model alike
 
 
 class ColmapWriter:
@@ -209,7 +214,9 @@ class ColmapWriter:
     def _points2d(self, intrinsics: np.ndarray, cam_from_world: np.ndarray, ids: np.ndarray) -> np.ndarray:
         proj = project(transform_points(cam_from_world, self.xyz[ids]), intrinsics)
         out = np.empty(len(ids), _POINT2D_BIN)
-        out["x"], out["y"], out["point3D_id"] = proj.u + 0.5, proj.v + 0.5, ids + 1
+        # rounded as the text writes them, so images.txt and images.bin hold the same numbers
+        out["x"], out["y"] = np.round(proj.u + 0.5, POINT2D_DECIMALS), np.round(proj.v + 0.5, POINT2D_DECIMALS)
+        out["point3D_id"] = ids + 1
         return out
 
     def _tracks(self, points2d: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -223,28 +230,30 @@ class ColmapWriter:
         return point_ids, elements[order], starts
 
     def _write_cameras(self, k: np.ndarray | None) -> None:
-        lines, binary = [], struct.pack("<Q", 0 if k is None else 1)
+        records = []
         if k is not None:
             width, height = self._images[0][0].size
             params = (k[0], k[1], k[2] + 0.5, k[3] + 0.5)
-            lines.append(f"1 PINHOLE {width} {height} " + " ".join(repr(float(v)) for v in params))
-            binary += _CAMERA_BIN.pack(1, PINHOLE_MODEL_ID, width, height) + struct.pack("<4d", *params)
+            records.append((f"1 PINHOLE {width} {height} {' '.join(repr(float(v)) for v in params)}".encode(),
+                            _CAMERA_BIN.pack(1, PINHOLE_MODEL_ID, width, height) + struct.pack("<4d", *params)))
         self._write("cameras", ["Camera list with one line of data per camera:", "  CAMERA_ID, MODEL, WIDTH, "
-                                "HEIGHT, PARAMS[]", f"Number of cameras: {len(lines)}"], lines, binary)
+                                "HEIGHT, PARAMS[]", f"Number of cameras: {len(records)}"], len(records), records)
 
     def _write_images(self, cam_from_world: list[np.ndarray], points2d: list[np.ndarray]) -> None:
-        lines, chunks = [], [struct.pack("<Q", self.count)]
-        for image_id, ((im, _), pose, obs) in enumerate(zip(self._images, cam_from_world, points2d), start=1):
-            pose_values = (*quaternion_wxyz(pose[:3, :3]), *pose[:3, 3])
-            lines.append(f"{image_id} " + " ".join(repr(float(v)) for v in pose_values) + f" 1 {im.name}")
-            lines.append(" ".join(f"{x!r} {y!r} {i}" for x, y, i in obs.tolist()))
-            chunks += [_IMAGE_BIN.pack(image_id, *pose_values, 1), im.name.encode() + b"\0",
-                       struct.pack("<Q", len(obs)), obs.tobytes()]
+        def records() -> Iterator[tuple[bytes, bytes]]:
+            observations = _grouped_lines(points2d, ("x", "y", "point3D_id"), (POINT2D_DECIMALS, POINT2D_DECIMALS, 0))
+            for image_id, ((im, _), pose, obs, obs_line) in enumerate(zip(self._images, cam_from_world, points2d,
+                                                                           observations), start=1):
+                pose_values = (*quaternion_wxyz(pose[:3, :3]), *pose[:3, 3])
+                line = f"{image_id} {' '.join(repr(float(v)) for v in pose_values)} 1 {im.name}\n".encode()
+                yield line + obs_line, b"".join([_IMAGE_BIN.pack(image_id, *pose_values, 1), im.name.encode() + b"\0",
+                                                 struct.pack("<Q", len(obs)), obs.tobytes()])
+
         mean = sum(len(p) for p in points2d) / max(self.count, 1)
         self._write("images", ["Image list with two lines of data per image:", "  IMAGE_ID, QW, QX, QY, QZ, TX, TY, "
                                "TZ, CAMERA_ID, NAME", "  POINTS2D[] as (X, Y, POINT3D_ID)",
                                f"Number of images: {self.count}, mean observations per image: {mean:g}"],
-                    lines, b"".join(chunks))
+                    self.count, records())
 
     def _write_points(self, tracks: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
         point_ids, elements, starts = tracks
@@ -252,26 +261,53 @@ class ColmapWriter:
         rows["id"], rows["xyz"], rows["rgb"] = point_ids, self.xyz[point_ids - 1], self.rgb[point_ids - 1]
         rows["error"] = 0.0  # the 2D points are these points' projections: no reprojection error by construction
         rows["length"] = np.diff(np.append(starts, len(elements)))
-        # one point is a row (51 bytes) then its track (8 bytes an element): slices of two buffers, interleaved
-        row_bytes, track_bytes, size = rows.tobytes(), elements.tobytes(), _POINT3D_BIN.itemsize
-        pairs = [f"{i} {j}" for i, j in zip(elements["image_id"].tolist(), elements["point2D_idx"].tolist())]
-        lines, chunks = [], [struct.pack("<Q", len(point_ids))]
-        for n, (pid, xyz, rgb, start, length) in enumerate(zip(point_ids.tolist(), rows["xyz"].tolist(),
-                                                               rows["rgb"].tolist(), starts.tolist(),
-                                                               rows["length"].tolist())):
-            lines.append(f"{pid} {xyz[0]!r} {xyz[1]!r} {xyz[2]!r} {rgb[0]} {rgb[1]} {rgb[2]} 0 "
-                         + " ".join(pairs[start:start + length]))
-            chunks += [row_bytes[n * size:(n + 1) * size], track_bytes[8 * start:8 * (start + length)]]
+        bounds = np.append(starts, len(elements)).tolist()
+
+        def records() -> Iterator[tuple[bytes, bytes]]:
+            # one point is a row (51 bytes) then its track (8 bytes an element)
+            track_lines = _grouped_lines([elements[a:b] for a, b in zip(bounds[:-1], bounds[1:])],
+                                         ("image_id", "point2D_idx"), (0, 0))
+            for row, pid, xyz, rgb, start, end, track in zip(rows, point_ids.tolist(), rows["xyz"].tolist(),
+                                                             rows["rgb"].tolist(), bounds[:-1], bounds[1:],
+                                                             track_lines):
+                line = f"{pid} {xyz[0]!r} {xyz[1]!r} {xyz[2]!r} {rgb[0]} {rgb[1]} {rgb[2]} 0 ".encode() + track
+                yield line, row.tobytes() + elements[start:end].tobytes()
+
         mean = len(elements) / max(len(point_ids), 1)
         self._write("points3D", ["3D point list with one line of data per point:", "  POINT3D_ID, X, Y, Z, R, G, B, "
                                  "ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)",
                                  f"Number of points: {len(point_ids)}, mean track length: {mean:g}"],
-                    lines, b"".join(chunks))
+                    len(point_ids), records())
 
-    def _write(self, name: str, comments: list[str], lines: list[str], binary: bytes) -> None:
-        text = "".join(f"# {c}\n" for c in comments) + "".join(f"{line}\n" for line in lines)
-        (self.folder / f"{name}.txt").write_text(text)
-        (self.folder / f"{name}.bin").write_bytes(binary)
+    def _write(self, name: str, comments: list[str], count: int, records: Iterable[tuple[bytes, bytes]]) -> None:
+        """``name``.txt and .bin from ``count`` records of (text line, binary record), written as they come: a
+        long stream's model is ~200 MB of text that need not be held whole."""
+        with open(self.folder / f"{name}.txt", "wb") as text, open(self.folder / f"{name}.bin", "wb") as binary:
+            text.write("".join(f"# {c}\n" for c in comments).encode())
+            binary.write(struct.pack("<Q", count))
+            for line, record in records:
+                text.write(line)
+                text.write(b"\n")
+                binary.write(record)
+
+
+def _grouped_lines(groups: list[np.ndarray], fields: tuple[str, ...], decimals: tuple[int, ...],
+                   batch_rows: int = 1 << 18) -> Iterator[bytes]:
+    """Each group's rows (a structured array) as one line of text, its ``fields`` separated by spaces: formatted
+    a batch of groups at a time (:func:`format_rows`; a long stream's model holds ~5 M rows, so at most
+    ``batch_rows`` of their characters exist at once)."""
+    first = 0
+    while first < len(groups):
+        last, rows = first, 0
+        while last < len(groups) and (last == first or rows + len(groups[last]) <= batch_rows):
+            rows += len(groups[last])
+            last += 1
+        batch = np.concatenate(groups[first:last])
+        text, offsets = format_rows([batch[f] for f in fields], decimals)
+        bounds = offsets[np.cumsum([0] + [len(g) for g in groups[first:last]])].tolist()
+        for begin, end in zip(bounds[:-1], bounds[1:]):
+            yield text[begin:max(begin, end - 1)]
+        first = last
 
 
 def write_colmap(folder: Path, images: dict[int, ColmapImage], xyz: np.ndarray | None = None,

@@ -51,6 +51,7 @@ class Frontend:
         self.relocalised = 0  # keyframes aligned from a PnP start (relocalise.realign_keyframe)
         self._deferred = 0  # keyframes in a row whose window BA was left to a later keyframe
         self._since_global = 0  # keyframes joined since the last BA over every held keyframe (refine_globally)
+        self._background_bas = 0  # BAs over every held keyframe during the stream (refine_globally)
         self._carried: dict[int, torch.Tensor] = {}  # deferred keyframe seq -> (h, w) 1 where its carried-over
         # disparity is measured (a point landed), 0 where filled in; emptied by the next window BA
 
@@ -195,19 +196,24 @@ class Frontend:
         static = False
         if not self.initialised:
             static = self._force_initialise()
+        began = time.monotonic()
         if len(g) > 1 and not static:
-            self._global_ba(self.params.global_ba_s)
+            self._global_ba(self._end_bound_s())
+        solved = time.monotonic()
         # frames after the last keyframe too: at the end no later keyframe will come to bracket them
         for seq in [s for s, f in self.frames.frames.items() if f.anchor is None]:
             self.frames.align(g, seq)
         self.frames.align_at_end(g, time.monotonic() + self.params.final_align_s, self.params.realign_focal_change)
+        logger.info("end of stream: keyframes and frames final", extra={
+            "keyframes": len(g), "frames": len(self.frames.frames), "global_ba_s": round(solved - began, 2),
+            "frames_s": round(time.monotonic() - solved, 2)})
         return self._update(list(range(len(g))), every_frame=True)
 
     def refine_globally(self) -> Update:
-        """Mapping's spare time on a lossless stream: once ``background_ba_every`` keyframes have joined since the
-        last one, the end of stream's BA over every keyframe held, bounded to ``background_ba_s``, so the map
-        outside the window is refined during the stream and the end of stream's own BA starts near its optimum
-        (it stops once an iteration gains less than ``global_ba.rel_tol``). Every keyframe's pose and map in the
+        """A lossless stream's background refinement (mapping's spare time, or after a keyframe when ba sets the
+        pace): once ``background_ba_every`` keyframes have joined since the last one, the end of stream's BA over
+        every keyframe held, bounded to ``background_ba_s``, so the map outside the window is refined during the
+        stream and the end of stream's own BA only settles it (bounded to ``settled_global_ba_s`` once one ran). Every keyframe's pose and map in the
         update (empty when none is due, or the BA was refused). A live stream's mapping has no such time: a BA
         over 100 keyframes takes seconds, and keyframes would queue behind it."""
         g, p = self.graph, self.params
@@ -215,9 +221,18 @@ class Frontend:
                 or self._since_global < p.background_ba_every or len(g) <= p.graph.window):
             return Update()
         self._since_global = 0
+        self._background_bas += 1
         if not self._global_ba(p.background_ba_s):
             return Update()
         return self._update(list(range(len(g))))
+
+    def _end_bound_s(self) -> float:
+        """The end-of-stream BA's time bound (0: none): ``global_ba_s``, and ``settled_global_ba_s`` once
+        background BAs ran during the stream, whichever is shorter."""
+        bounds = [self.params.global_ba_s]
+        if self._background_bas:
+            bounds.append(self.params.settled_global_ba_s)
+        return min((b for b in bounds if b > 0), default=0.0)
 
     def _global_ba(self, bound_s: float) -> bool:
         """The BA over every held keyframe with the global edge set, stopping after the iteration that passes
