@@ -160,6 +160,10 @@ def table(run: Run, summary: dict, meta: dict) -> str:
     rows.append(("end-to-end fps (frames read / ingest start → last EOS)",
                  f"{read / duration:.2f} ({read} in {duration:.1f} s)" if duration else "–"))
     rows.append(("end of stream (ingest EOS → last EOS)", _fmt(summary.get("end_of_stream_s"), ".1f") + " s"))
+    stages = summary.get("end_of_stream_stages") or {}
+    rows.append(("end of stream per stage: EOS after ingest's / own end-of-stream work",
+                 ", ".join(f"{stage} {use['after_ingest_s']:.1f} / {use['work_s']:.1f} s" for stage, use in stages.items())
+                 or "–"))
     drops = summary.get("drops") or {}
     rows.append(("dropped: " + " / ".join(STAGES), " / ".join(_fmt(drops.get(s)) for s in STAGES)))
     rows.append(("codes skipped (backbone, stale keyframes)", _fmt(summary.get("codes_skipped"))))

@@ -114,7 +114,10 @@ def _print_live(report) -> None:
         print(f"  view lost:         frames {runs} ({frames} frame{'s' * (frames != 1)} whose view held no evidence, "
               "posed by time between their neighbours)")
     if report.end_of_stream_s is not None:
-        print(f"  end of stream:     {report.end_of_stream_s:.1f} s from ingest's EOS to the last stage's")
+        work = ", ".join(f"{stage} {use['work_s']:.1f} s" for stage, use in report.end_of_stream_stages.items()
+                         if use.get("work_s"))
+        print(f"  end of stream:     {report.end_of_stream_s:.1f} s from ingest's EOS to the last stage's"
+              + (f" (its own work: {work})" if work else ""))
     if report.services:
         wall = report.duration_s or 0.0
         parts = []

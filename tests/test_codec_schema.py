@@ -50,6 +50,7 @@ def _examples() -> list[schema.Message]:
         schema.Intrinsics("s", 4, 0, intrinsics=k, width=24, height=16),
         schema.Eos("s", 7, 0, stage="ingest", count=8),
         schema.Eos("s", 7, 0, stage="features", count=3, dropped=2, codes_skipped=1, lost=4),
+        schema.Eos("s", 7, 0, stage="ba", count=3, views_lost=np.array([[2, 3]], np.int64), work_s=4.25),
         schema.MapQuery("s", 1, 0, vectors=np.ones((2, 8), np.float32), space="x"),
         schema.KeyframeList("s", 2, 0, seqs=np.array([0, 4]), stamps_ns=np.array([0, 9]),
                             widths=np.array([24, 24], np.int32), heights=np.array([16, 16], np.int32),

@@ -55,7 +55,8 @@ def test_the_first_pose_of_each_frame_is_kept_and_frames_ingest_dropped_count_as
     for stage, dropped in (("ingest", 2), ("features", 1), ("ba", 0)):
         lost = np.array([[1, 1]], np.int64) if stage == "ba" else None  # frame 1's view held no evidence
         _deliver(observer, Eos("cam0", 4, 0, stage=stage, count=3, dropped=dropped,
-                               codes_skipped=4 if stage == "features" else 0, views_lost=lost))
+                               codes_skipped=4 if stage == "features" else 0, views_lost=lost,
+                               work_s=2.5 if stage == "ba" else 0.0))
 
     report = RunReport("synth:", "cam0", ["ingest", "features", "ba"], [], duration_s=1.0)
     fill_report(report, observer, ResourceMonitor())
@@ -66,8 +67,13 @@ def test_the_first_pose_of_each_frame_is_kept_and_frames_ingest_dropped_count_as
     assert report.codes_skipped == 4
     assert report.views_lost == [[1, 1]]
     _print_summary(report)
-    assert "view lost:         frames 1 (1 frame whose view held no evidence" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "view lost:         frames 1 (1 frame whose view held no evidence" in printed
     assert report.end_of_stream_s is not None and report.end_of_stream_s >= 0
+    assert set(report.end_of_stream_stages) == {"features", "ba"}  # ingest's EOS is where the clock starts
+    assert report.end_of_stream_stages["ba"]["work_s"] == 2.5
+    assert report.end_of_stream_stages["ba"]["after_ingest_s"] == report.end_of_stream_s
+    assert "(its own work: ba 2.5 s)" in printed
     # the first pose is the tracked one (x = seq), the latest the mapped one (x = seq + 0.5)
     assert observer.first_pose[1][2][0, 3] == 1.0 and observer.first_pose[3][2][0, 3] == 3.5
     assert observer.poses[1][1][0, 3] == 1.5
@@ -110,6 +116,13 @@ def test_a_real_run_reports_posed_fraction_latency_drops_and_resources(tmp_path,
     assert summary["ate_rmse_sim3"] is not None and summary["ate_first_poses"] is not None
     assert summary["ate_first_poses_pairs"] == round(summary["posed_fraction"] * 30)
     assert summary["end_of_stream_s"] >= 0
+    # ba's final BA and the mapstore's export are timed by the stage itself, inside its time after ingest's EOS
+    stages = summary["end_of_stream_stages"]
+    assert set(stages) == {"features", "ba", "mapstore"}
+    assert stages["ba"]["work_s"] > 0  # its final BA
+    for stage in ("ba", "mapstore"):
+        assert 0 <= stages[stage]["work_s"] <= stages[stage]["after_ingest_s"] + 0.5, stage
+    assert stages["mapstore"]["after_ingest_s"] == summary["end_of_stream_s"]
     assert list(summary["services"]) == list(STAGES)
     for name, use in summary["services"].items():
         assert use["cpu_s"] > 0 and 0 <= use["cpu_stream_s"] <= use["cpu_s"] and use["rss_peak_mb"] > 10, name

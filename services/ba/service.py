@@ -214,6 +214,7 @@ def handle_eos(state: BaState, msg: Eos, cfg: BaSettings) -> Outputs:
     if msg.stage != "features":
         return []
     log.info("end of stream: global BA", extra={"stream": msg.stream, "seq": msg.seq, "keyframes": state.keyframes})
+    began = time.monotonic()
     try:
         outputs = outputs_of(state.frontend, msg, state.frontend.finish(), final=True)
     except (ValueError, RuntimeError):  # the stream must still end downstream
@@ -222,7 +223,8 @@ def handle_eos(state: BaState, msg: Eos, cfg: BaSettings) -> Outputs:
         outputs = []
     lost = state.frontend.frames.lost_views()
     eos = Eos(msg.stream, max(state.last_seq, msg.seq), time.time_ns(), stage="ba", count=state.keyframes,
-              reason=msg.reason, dropped=state.dropped, views_lost=np.array(lost, np.int64).reshape(-1, 2))
+              reason=msg.reason, dropped=state.dropped, views_lost=np.array(lost, np.int64).reshape(-1, 2),
+              work_s=round(time.monotonic() - began, 3))
     log.info("stream done", extra={"stream": msg.stream, "keyframes": state.keyframes, "merged": state.merged,
                                    "dropped": state.dropped, "views_lost": len(lost),
                                    "keyframes_relocalised": state.frontend.relocalised})

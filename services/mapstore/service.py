@@ -110,6 +110,7 @@ def stream_complete(state: MapState) -> bool:
 
 
 def finish_stream(state: MapState, msg: Eos, cfg: MapstoreSettings) -> list[tuple[str, Message]]:
+    began = time.monotonic()
     state.pending_eos, state.final_keyframes = None, None
     log.info("end of stream", extra={"stream": msg.stream, "seq": msg.seq, "stage": msg.stage,
                                      "keyframes_without_codes": state.without_codes_count(),
@@ -118,7 +119,8 @@ def finish_stream(state: MapState, msg: Eos, cfg: MapstoreSettings) -> list[tupl
         export_state(state, Path(cfg.export_dir))
     state.store.set_meta({"finished": "1"})  # nothing to resume after a restart
     count = state.keyframe_count()
-    return [(keys.topic(msg.stream, keys.EOS), Eos(msg.stream, msg.seq, time.time_ns(), stage="mapstore", count=count))]
+    return [(keys.topic(msg.stream, keys.EOS), Eos(msg.stream, msg.seq, time.time_ns(), stage="mapstore", count=count,
+                                                    work_s=round(time.monotonic() - began, 3)))]
 
 
 def export_state(state: MapState, out: Path):

@@ -120,6 +120,10 @@ def fill_report(report: "RunReport", observer: Observer, monitor: ResourceMonito
         report.views_lost = [[int(a), int(b)] for a, b in observer.eos["ba"].views_lost]
     if "ingest" in observer.eos_at and observer.last_stage in observer.eos_at:
         report.end_of_stream_s = round(observer.eos_at[observer.last_stage] - observer.eos_at["ingest"], 3)
+        report.end_of_stream_stages = {
+            stage: {"after_ingest_s": round(observer.eos_at[stage] - observer.eos_at["ingest"], 3),
+                    "work_s": observer.eos[stage].work_s}
+            for stage in STAGES if stage in observer.eos_at and stage != "ingest"}
     usage = monitor.report()
     report.services = {name: usage[name] for name in kids.PIPELINE if name in usage}  # in chain order
     report.rss_total_peak_mb = round(monitor.rss_total_peak_mb, 1)

@@ -90,6 +90,8 @@ class RunReport:
     views_lost: list[list[int]] = field(default_factory=list)  # ba: [first, last] frame seqs of each run of frames
     # whose view held no evidence (covered, blank, a cut), posed by time between their neighbours
     end_of_stream_s: float | None = None  # ingest's EOS → the last stage's EOS, as the runner saw them
+    # per stage: its EOS after ingest's ("after_ingest_s") and the end-of-stream work it reported ("work_s")
+    end_of_stream_stages: dict[str, dict[str, float]] = field(default_factory=dict)
     services: dict[str, dict[str, float]] = field(default_factory=dict)  # cpu_s, cpu_stream_s, rss_peak_mb
     rss_total_peak_mb: float = 0.0  # largest sum over the services of their RSS at one sample
     rss_mb_at_frames: list[dict] = field(default_factory=list)  # {"frames", "t_s", "rss_mb": {service: MB}}
