@@ -172,6 +172,8 @@ def table(run: Run, summary: dict, meta: dict) -> str:
         rows.append((f"{name}: CPU share / CPU s / peak RSS",
                      f"{share} / {use['cpu_stream_s']:.1f} s / {use['rss_peak_mb']:.0f} MB"))
     rows.append(("all services: peak RSS (sum at one sample)", f"{summary.get('rss_total_peak_mb', 0):.0f} MB"))
+    pss = summary.get("pss_total_peak_mb")
+    rows.append(("all services: peak PSS (shared pages counted once)", f"{pss:.0f} MB" if pss else "–"))
     if run.memory:
         rows += memory_rows(summary)
     rows.append(("load average before / mean during (1 min) / after",

@@ -124,7 +124,8 @@ def _print_live(report) -> None:
         for name, use in report.services.items():
             share = f" ({100 * use['cpu_stream_s'] / wall:.0f} %)" if wall else ""
             parts.append(f"{name} {use['cpu_stream_s']:.1f} s{share} {use['rss_peak_mb']:.0f} MB")
-        print(f"  CPU, peak RSS:     {'; '.join(parts)}; all services {report.rss_total_peak_mb:.0f} MB at peak")
+        pss = f" (PSS {report.pss_total_peak_mb:.0f} MB)" if report.pss_total_peak_mb else ""
+        print(f"  CPU, peak RSS:     {'; '.join(parts)}; all services {report.rss_total_peak_mb:.0f} MB at peak{pss}")
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:

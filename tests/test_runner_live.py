@@ -128,6 +128,10 @@ def test_a_real_run_reports_posed_fraction_latency_drops_and_resources(tmp_path,
         assert use["cpu_s"] > 0 and 0 <= use["cpu_stream_s"] <= use["cpu_s"] and use["rss_peak_mb"] > 10, name
     peaks = [use["rss_peak_mb"] for use in summary["services"].values()]
     assert max(peaks) <= summary["rss_total_peak_mb"] <= sum(peaks) + 1
+    # PSS splits the libraries every service maps among them: their sum holds less than the sum of RSS
+    assert 0 < summary["pss_total_peak_mb"] < summary["rss_total_peak_mb"]
+    for name, use in summary["services"].items():
+        assert 0 < use["pss_peak_mb"] <= use["rss_peak_mb"], name
     assert summary["rss_mb_at_frames"] and summary["rss_mb_at_frames"][-1]["frames"] == summary["frames"]
     if pacing == "lossless":
         assert summary["drops"] == {stage: 0 for stage in STAGES} and summary["posed_fraction"] == 1.0

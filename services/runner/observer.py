@@ -127,4 +127,5 @@ def fill_report(report: "RunReport", observer: Observer, monitor: ResourceMonito
     usage = monitor.report()
     report.services = {name: usage[name] for name in kids.PIPELINE if name in usage}  # in chain order
     report.rss_total_peak_mb = round(monitor.rss_total_peak_mb, 1)
+    report.pss_total_peak_mb = None if monitor.pss_total_peak_mb is None else round(monitor.pss_total_peak_mb, 1)
     report.rss_mb_at_frames = list(monitor.series)

@@ -94,6 +94,7 @@ class RunReport:
     end_of_stream_stages: dict[str, dict[str, float]] = field(default_factory=dict)
     services: dict[str, dict[str, float]] = field(default_factory=dict)  # cpu_s, cpu_stream_s, rss_peak_mb
     rss_total_peak_mb: float = 0.0  # largest sum over the services of their RSS at one sample
+    pss_total_peak_mb: float | None = None  # the same for PSS: shared library pages counted once (resources.py)
     rss_mb_at_frames: list[dict] = field(default_factory=list)  # {"frames", "t_s", "rss_mb": {service: MB}}
     queries: dict = field(default_factory=dict)  # which queries the map answers, and why (semantics.QuerySupport)
     rerun: dict = field(default_factory=dict)  # what the Rerun recording holds (rerun_recorder.RerunRecorder.close)

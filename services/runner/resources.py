@@ -5,7 +5,12 @@ runner calls
 :meth:`ResourceMonitor.sample` from its follow loop about every half second, and always before it polls the
 children (``Popen.poll`` reaps an exited child, after which its CPU time is gone; before that a zombie still
 reports it). Peak RSS is the largest sample; CPU is user + system seconds at the last sample, and ``cpu_stream_s``
-the part of it spent after :meth:`mark_stream_start` (while the stream ran, model loading excluded)."""
+the part of it spent after :meth:`mark_stream_start` (while the stream ran, model loading excluded).
+
+RSS counts a shared page in every process that maps it: the services' Python, torch and OpenCV libraries are mapped
+by five or six processes, so a sum of RSS counts them five or six times. PSS (Linux ``smaps_rollup``) splits each
+shared page among the processes that map it: the sum of PSS is the memory the services hold together. Both are
+reported; PSS is None where the platform has no such count."""
 from __future__ import annotations
 
 import time
@@ -22,6 +27,8 @@ class ServiceUsage:
     cpu_at_stream_start: float | None = None
     rss_mb: float = 0.0  # last sample
     rss_peak_mb: float = 0.0
+    pss_mb: float | None = None  # last sample (None: not readable here)
+    pss_peak_mb: float | None = None
 
     @property
     def cpu_stream_s(self) -> float:
@@ -33,6 +40,7 @@ class ResourceMonitor:
     interval_s: float = 0.5
     usage: dict[str, ServiceUsage] = field(default_factory=dict)
     rss_total_peak_mb: float = 0.0
+    pss_total_peak_mb: float | None = None  # largest sum of the services' PSS at one sample
     series: list[dict] = field(default_factory=list)  # {"frames", "t_s", "rss_mb": {service: MB}}
     _procs: dict[str, psutil.Process] = field(default_factory=dict)
     _last: float = float("-inf")
@@ -51,9 +59,9 @@ class ResourceMonitor:
     def sample(self) -> None:
         """One sample of every watched service (exited ones keep their last values)."""
         self._last = time.monotonic()
-        total = 0.0
+        total, total_pss = 0.0, None
         for name, proc in self._procs.items():
-            cpu, rss = _process_usage(proc)
+            cpu, rss, pss = _process_usage(proc)
             use = self.usage[name]
             if cpu is not None:
                 use.cpu_s = max(use.cpu_s, cpu)
@@ -61,7 +69,13 @@ class ResourceMonitor:
                 use.rss_mb = rss / MB
                 use.rss_peak_mb = max(use.rss_peak_mb, use.rss_mb)
                 total += use.rss_mb
+            if pss is not None and pss > 0:
+                use.pss_mb = pss / MB
+                use.pss_peak_mb = max(use.pss_peak_mb or 0.0, use.pss_mb)
+                total_pss = (total_pss or 0.0) + use.pss_mb
         self.rss_total_peak_mb = max(self.rss_total_peak_mb, total)
+        if total_pss is not None:
+            self.pss_total_peak_mb = max(self.pss_total_peak_mb or 0.0, total_pss)
 
     def mark_stream_start(self) -> None:
         self.sample()
@@ -71,33 +85,38 @@ class ResourceMonitor:
     def record(self, frames: int) -> None:
         """Append the current RSS of every service to :attr:`series` (call right after :meth:`sample`)."""
         self.series.append({"frames": int(frames), "t_s": round(time.monotonic() - self._t0, 2),
-                            "rss_mb": {n: round(u.rss_mb, 1) for n, u in self.usage.items()}})
+                            "rss_mb": {n: round(u.rss_mb, 1) for n, u in self.usage.items()},
+                            "pss_mb": {n: round(u.pss_mb, 1) for n, u in self.usage.items() if u.pss_mb is not None}})
 
     def report(self) -> dict[str, dict[str, float]]:
         return {n: {"cpu_s": round(u.cpu_s, 2), "cpu_stream_s": round(u.cpu_stream_s, 2),
-                    "rss_peak_mb": round(u.rss_peak_mb, 1)} for n, u in self.usage.items()}
+                    "rss_peak_mb": round(u.rss_peak_mb, 1),
+                    "pss_peak_mb": None if u.pss_peak_mb is None else round(u.pss_peak_mb, 1)}
+                for n, u in self.usage.items()}
 
 
-def _process_usage(proc: psutil.Process) -> tuple[float | None, float | None]:
-    """CPU seconds and RSS bytes of ``proc`` and the processes it started (ba's tracking process: live ones
+def _process_usage(proc: psutil.Process) -> tuple[float | None, float | None, float | None]:
+    """CPU seconds, RSS and PSS bytes of ``proc`` and the processes it started (ba's tracking process: live ones
     sampled, ended ones in the parent's children times); None for what can no longer be read (a zombie still has
     its CPU times, its RSS reads 0)."""
-    cpu, rss = _own_usage(proc, with_reaped=True)
+    cpu, rss, pss = _own_usage(proc, with_reaped=True)
     try:
         children = proc.children(recursive=True)
     except (psutil.NoSuchProcess, psutil.AccessDenied):
         children = []
     for child in children:
-        child_cpu, child_rss = _own_usage(child, with_reaped=False)
+        child_cpu, child_rss, child_pss = _own_usage(child, with_reaped=False)
         if cpu is not None and child_cpu is not None:
             cpu += child_cpu
         if rss is not None and child_rss is not None:
             rss += child_rss
-    return cpu, rss
+        if pss is not None and child_pss is not None:
+            pss += child_pss
+    return cpu, rss, pss
 
 
-def _own_usage(proc: psutil.Process, with_reaped: bool) -> tuple[float | None, float | None]:
-    cpu = rss = None
+def _own_usage(proc: psutil.Process, with_reaped: bool) -> tuple[float | None, float | None, float | None]:
+    cpu = rss = pss = None
     with proc.oneshot():
         try:
             times = proc.cpu_times()
@@ -110,4 +129,8 @@ def _own_usage(proc: psutil.Process, with_reaped: bool) -> tuple[float | None, f
             rss = float(proc.memory_info().rss)
         except (psutil.NoSuchProcess, psutil.AccessDenied):
             pass
-    return cpu, rss
+    try:  # outside oneshot: it reads smaps_rollup, not the stat files oneshot caches
+        pss = float(proc.memory_full_info().pss)
+    except (psutil.NoSuchProcess, psutil.AccessDenied, AttributeError):  # no pss on this platform
+        pass
+    return cpu, rss, pss
