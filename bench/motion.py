@@ -2,11 +2,10 @@
 
 A camera 30 cm and ~1.3 deg from one keyframe with a KITTI-sized grid (30 x 98 cells at half working size), flow
 targets from the exact pose plus 0.05 px noise; the solve starts at the keyframe. Prints ms per ``align`` call,
-its steps and the pose error. With ``--batch N``: N such cameras (each its own noise) aligned one call each and
-in one ``align_batch`` call, the end of stream's way of aligning held frames again.
+its steps and the pose error.
 
 Usage:
-  python bench/motion.py [--calls 50] [--height 30 --width 98] [--batch 64]
+  python bench/motion.py [--calls 50] [--height 30 --width 98]
 """
 from __future__ import annotations
 
@@ -28,7 +27,6 @@ def main() -> int:
     parser.add_argument("--calls", type=int, default=50)
     parser.add_argument("--height", type=int, default=30, help="grid cells")
     parser.add_argument("--width", type=int, default=98, help="grid cells")
-    parser.add_argument("--batch", type=int, default=0, help="also time N cameras one by one and in one batch")
     args = parser.parse_args()
     torch.set_num_threads(1)
     gen = torch.Generator().manual_seed(0)
@@ -50,22 +48,6 @@ def main() -> int:
     error = float((result.pose - truth).abs().max())
     print(f"motion-only alignment, {h}x{w} grid: {ms:.1f} ms per call, {result.steps} steps, "
           f"pose error {error:.1e} (max abs of the 4x4 difference)")
-    if args.batch:
-        noisy = coords + 0.05 * torch.randn((args.batch, *coords.shape[1:]), dtype=torch.float64, generator=gen)
-        targets = noisy.reshape(args.batch, 1, h, w, 2)
-        batch_args = (start.expand(args.batch, 4, 4), keyframe.expand(args.batch, 1, 4, 4),
-                      disparity.expand(args.batch, 1, h, w), targets, confidence.expand(args.batch, 1, h, w))
-        began = time.perf_counter()
-        alone = [motion.align(start, keyframe, disparity, targets[i], confidence, intrinsics, MotionParams())
-                 for i in range(args.batch)]
-        one_by_one = time.perf_counter() - began
-        began = time.perf_counter()
-        together = motion.align_batch(*batch_args, intrinsics, MotionParams())
-        batched = time.perf_counter() - began
-        gap = max(float((a.pose - b.pose).abs().max()) for a, b in zip(alone, together))
-        print(f"{args.batch} cameras: {one_by_one * 1e3 / args.batch:.1f} ms each one by one, "
-              f"{batched * 1e3 / args.batch:.2f} ms each in one batch ({one_by_one / batched:.1f}x); "
-              f"largest pose difference {gap:.1e}")
     return 0
 
 

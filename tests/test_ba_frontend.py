@@ -58,41 +58,6 @@ def test_motion_only_alignment_refuses_without_evidence():
     assert torch.equal(res.pose, win.truth.poses[1])
 
 
-def test_batched_motion_only_alignment_gives_each_camera_what_aligning_it_alone_gives():
-    """The end of stream aligns hundreds of held frames at once: each camera of the batch gets the pose, steps
-    and verdict of its own alignment, whether it has two keyframes, one (padded with zero confidence) or no
-    evidence (refused)."""
-    win = synthetic.make_window(n=5, h=24, w=32, seed=4, surface="room")
-    truth, prob = win.truth, win.problem
-    gen = torch.Generator().manual_seed(3)
-    noisy = prob.targets + 0.3 * torch.randn(prob.targets.shape, generator=gen, dtype=prob.targets.dtype)
-    cases = []  # (camera, edge rows into it, confidence scale)
-    for cam, count, scale in ((2, 2, 1.0), (3, 1, 1.0), (4, 2, 1.0), (3, 2, 0.0), (4, 1, 1.0)):
-        rows = [e for e in range(len(prob.ii)) if int(prob.jj[e]) == cam][:count]
-        assert len(rows) == count
-        cases.append((cam, rows, scale))
-    starts = synthetic.perturb_poses(truth.poses, 0.05, 2.0, gen)
-    alone, batch = [], {name: [] for name in ("pose", "kf", "disp", "target", "conf")}
-    params = MotionParams(iterations=10)
-    for cam, rows, scale in cases:
-        args = (truth.poses[prob.ii[rows]], truth.disparity[prob.ii[rows]], noisy[rows], scale * prob.confidence[rows])
-        alone.append(motion.align(starts[cam], *args, truth.intrinsics, params))
-        pad = 2 - len(rows)  # a second keyframe that carries no weight
-        batch["pose"].append(starts[cam])
-        for name, arg, zero in zip(("kf", "disp", "target", "conf"), args, (False, False, False, True)):
-            filler = arg[:1].expand(pad, *arg.shape[1:])
-            batch[name].append(torch.cat([arg, torch.zeros_like(filler) if zero else filler]))
-    together = motion.align_batch(*(torch.stack(batch[n]) for n in ("pose", "kf", "disp", "target", "conf")),
-                                  truth.intrinsics, params)
-    assert [r.ok for r in alone] == [True, True, True, False, True]
-    assert len({r.steps for r in alone}) > 1  # the cameras stop at different steps
-    for one, many in zip(alone, together):
-        assert (one.ok, one.steps) == (many.ok, many.steps)
-        assert float((one.pose - many.pose).abs().max()) < 1e-9
-        assert one.weight == pytest.approx(many.weight, rel=1e-9)
-        assert one.rms == pytest.approx(many.rms, rel=1e-6, nan_ok=True)
-
-
 def test_two_view_start_finds_the_motion_direction_and_depth_ratios():
     win = synthetic.make_window(n=4, h=24, w=32, seed=5, surface="room", step=0.15)
     truth, prob = win.truth, win.problem

@@ -114,47 +114,6 @@ class FramePoses:
 
     def align(self, graph: KeyframeGraph, seq: int) -> torch.Tensor:
         """Align frame ``seq`` to its bracketing keyframes; store and return its world_from_cam ``(4, 4)``."""
-        job = self._alignment(graph, seq)
-        if isinstance(job, torch.Tensor):
-            return job
-        init, kfs, tg = job
-        dev = graph.device
-        res = motion.align(init, torch.stack([graph.poses[k] for k in kfs]),
-                           torch.stack([graph.disparity[k] for k in kfs]),
-                           torch.stack([t.target for t in tg]).to(dev), torch.stack([t.confidence for t in tg]).to(dev),
-                           graph.intrinsics, self.params)
-        return self._aligned(graph, seq, init, kfs, res)
-
-    def align_many(self, graph: KeyframeGraph, seqs: list[int], batch: int = 64) -> None:
-        """:meth:`align` of every frame in ``seqs``, the motion-only solves ``batch`` frames at a time
-        (:func:`motion.align_batch`: the same poses, ~10x less time for frames whose flows are kept)."""
-        for first in range(0, len(seqs), batch):
-            jobs = []
-            for seq in seqs[first:first + batch]:
-                job = self._alignment(graph, seq)
-                if not isinstance(job, torch.Tensor):
-                    jobs.append((seq, *job))
-            if not jobs:
-                continue
-            dev, pad = graph.device, max(len(kfs) for _, _, kfs, _ in jobs)
-
-            def padded(values: list[torch.Tensor], zero: bool = False) -> torch.Tensor:
-                extra = [torch.zeros_like(values[0]) if zero else values[0]] * (pad - len(values))
-                return torch.stack(values + extra)
-
-            results = motion.align_batch(
-                torch.stack([init for _, init, _, _ in jobs]),
-                torch.stack([padded([graph.poses[k] for k in kfs]) for _, _, kfs, _ in jobs]),
-                torch.stack([padded([graph.disparity[k] for k in kfs]) for _, _, kfs, _ in jobs]),
-                torch.stack([padded([t.target for t in tg]) for _, _, _, tg in jobs]).to(dev),
-                torch.stack([padded([t.confidence for t in tg], zero=True) for _, _, _, tg in jobs]).to(dev),
-                graph.intrinsics, self.params)
-            for (seq, init, kfs, _), res in zip(jobs, results):
-                self._aligned(graph, seq, init, kfs, res)
-
-    def _alignment(self, graph: KeyframeGraph, seq: int) -> torch.Tensor | tuple[torch.Tensor, list[int], list[Targets]]:
-        """What aligning frame ``seq`` solves: its start, bracketing keyframes and their flow targets into it
-        (computed here when not kept); or its pose already, where it is posed by time."""
         frame = self.frames[seq]
         a, b = self.bracket(graph, seq)
         kfs = [k for k in (a, b) if k is not None]
@@ -168,11 +127,12 @@ class FramePoses:
         if frame.interpolate_only:
             between = self._between_neighbours(graph, frame)
             return self._anchor(graph, frame, kfs[0], init if between is None else between)
-        return init, kfs, [self._targets(graph, k, frame) for k in kfs]
-
-    def _aligned(self, graph: KeyframeGraph, seq: int, init: torch.Tensor, kfs: list[int],
-                 res: motion.MotionResult) -> torch.Tensor:
-        frame = self.frames[seq]
+        tg = [self._targets(graph, k, frame) for k in kfs]
+        dev = graph.device
+        res = motion.align(init, torch.stack([graph.poses[k] for k in kfs]),
+                           torch.stack([graph.disparity[k] for k in kfs]),
+                           torch.stack([t.target for t in tg]).to(dev), torch.stack([t.confidence for t in tg]).to(dev),
+                           graph.intrinsics, self.params)
         frame.measured = True
         frame.blind = not res.ok
         if frame.blind:
@@ -185,33 +145,18 @@ class FramePoses:
         """Solve tracked frame ``seq`` again with tracking's flow against its reference keyframe as the graph holds
         it now, from its current pose; no flow is computed. Stores and returns its world_from_cam; None when its
         reference keyframe is not held or the solve is refused (the pose stands)."""
-        return self.resolve_many(graph, [seq])[0]
-
-    def resolve_many(self, graph: KeyframeGraph, seqs: list[int], batch: int = 64) -> list[torch.Tensor | None]:
-        """:meth:`resolve` of every frame in ``seqs``, solved ``batch`` at a time (:func:`motion.align_batch`)."""
-        out: list[torch.Tensor | None] = [None] * len(seqs)
-        for first in range(0, len(seqs), batch):
-            jobs = []
-            for i in range(first, min(first + batch, len(seqs))):
-                frame = self.frames[seqs[i]]
-                ref, current = frame.tracked_ref, self.pose(graph, seqs[i])
-                if ref is not None and ref in frame.targets and ref in graph.seqs and current is not None:
-                    jobs.append((i, frame, graph.index(ref), current))
-            if not jobs:
-                continue
-            dev = graph.device
-            results = motion.align_batch(
-                torch.stack([current for *_, current in jobs]),
-                torch.stack([graph.poses[k][None] for _, _, k, _ in jobs]),
-                torch.stack([graph.disparity[k][None] for _, _, k, _ in jobs]),
-                torch.stack([f.targets[f.tracked_ref].target[None] for _, f, _, _ in jobs]).to(dev),
-                torch.stack([f.targets[f.tracked_ref].confidence[None] for _, f, _, _ in jobs]).to(dev),
-                graph.intrinsics, self.params)
-            for (i, frame, _, _), res in zip(jobs, results):
-                frame.resolved = True
-                if res.ok and bool(torch.isfinite(res.pose).all()):
-                    out[i] = self._anchor(graph, frame, graph.index(frame.anchor), res.pose)
-        return out
+        frame = self.frames[seq]
+        ref = frame.tracked_ref
+        current = self.pose(graph, seq)
+        if ref is None or ref not in frame.targets or ref not in graph.seqs or current is None:
+            return None
+        k, t, dev = graph.index(ref), frame.targets[ref], graph.device
+        res = motion.align(current, graph.poses[k][None], graph.disparity[k][None], t.target[None].to(dev),
+                           t.confidence[None].to(dev), graph.intrinsics, self.params)
+        frame.resolved = True
+        if not res.ok or not bool(torch.isfinite(res.pose).all()):
+            return None
+        return self._anchor(graph, frame, graph.index(frame.anchor), res.pose)
 
     def resolvable(self, before: int | None = None, again: bool = False) -> list[int]:
         """Tracked frames :meth:`resolve` can improve, oldest first: not aligned with mapping's flow, tracking's
@@ -271,11 +216,10 @@ class FramePoses:
             spans[seq] = (seq if after is None else after) - (seq if before is None else before)
         return spans
 
-    def align_at_end(self, graph: KeyframeGraph, deadline: float, realign_focal_change: float,
-                     batch: int = 64) -> None:
+    def align_at_end(self, graph: KeyframeGraph, deadline: float, realign_focal_change: float) -> None:
         """End of stream: frames still held aligned to their final keyframes until ``deadline``
-        (time.monotonic()). First every tracked frame solved again with tracking's flow (:meth:`resolve_many`, batched:
-        ~5 ms each); then, with mapping's flow, those no flow of mapping's measured yet, the longest evidence first
+        (time.monotonic()). First every tracked frame solved again with tracking's flow (:meth:`resolve`, ~10 ms
+        each); then, with mapping's flow, those no flow of mapping's measured yet, the longest evidence first
         (:meth:`flow_spans`: the synthetic orbit's tracked frames are 40-90 mm off 20-35 frames from their
         reference, within ~2 mm of mapping's flow close to it), and those measured while the focal was still
         settling, more than ``realign_focal_change`` off the final one (their flow is kept: only the solve runs
@@ -286,26 +230,20 @@ class FramePoses:
         those now are (no flow)."""
         unmeasured = self.unmeasured()
         spans = self.flow_spans(graph, unmeasured)
+        steps = [("resolve", s) for s in self.resolvable(again=True)]
+        steps += [("measure", s) for s in sorted(unmeasured, key=lambda s: (-spans[s], s))]
         stale = self.stale_focal(float(graph.intrinsics[0]), realign_focal_change)
-        # the solves of frames whose flows are kept run in batches (align_many, resolve_many): hundreds in ~1 s
-        steps = [("resolve", self.resolvable(again=True))]
-        steps += [("measure", [s]) for s in sorted(unmeasured, key=lambda s: (-spans[s], s))]
-        stale_and_rest = stale + sorted(set(self.measured()) - set(stale))
-        steps += [("measure", stale_and_rest[i:i + batch]) for i in range(0, len(stale_and_rest), batch)]
-        done = 0
-        for step, seqs in steps:
+        steps += [("measure", s) for s in stale]
+        steps += [("measure", s) for s in sorted(set(self.measured()) - set(stale))]
+        for done, (step, seq) in enumerate(steps):
             if time.monotonic() >= deadline:
-                left = sum(len(s) for _, s in steps) - done
                 logger.info("end of stream: frames left with their earlier poses (time bound)",
-                            extra={"aligned": done, "left": left})
+                            extra={"aligned": done, "left": len(steps) - done})
                 break
             if step == "resolve":
-                self.resolve_many(graph, seqs)
+                self.resolve(graph, seq)
             else:
-                for seq in seqs:
-                    self.frames[seq].interpolate_only = False  # as measure: mapping's flow, whatever posed it
-                self.align_many(graph, seqs)
-            done += len(seqs)
+                self.measure(graph, seq)
         self.interpolate_again(graph)
 
     def interpolated(self) -> list[int]:
