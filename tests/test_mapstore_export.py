@@ -59,6 +59,9 @@ def test_depth_maps_png_mm_and_npz(tmp_path):
     (npz,) = write_depth_maps(tmp_path / "s", depths, metric=False)
     z = np.load(npz)["depth"]
     np.testing.assert_allclose(z[::8, ::8], [[2.0, 0.0], [0.5, 70.0]], rtol=1e-6)
+    # written again once the map became metric (an earlier export, or the keyframe's fold): one file, the new kind
+    write_depth_maps(tmp_path / "s", depths, metric=True)
+    assert [p.name for p in (tmp_path / "s").iterdir()] == ["000003.png"]
 
 
 def test_colmap_round_trip_matches_poses_and_intrinsics(tmp_path):

@@ -251,7 +251,11 @@ def test_a_long_stream_holds_a_bounded_window_and_gives_the_map_without_folding(
     assert most_live <= bound
     assert state.map.folded_count >= n - bound and state.keyframe_count() == n
     assert len(state.map.depths) <= bound + 2 and len(state.intrinsics) <= bound
-    whole = MapState(settings(tmp_path / "whole", fold_keyframes=False))
+    # folded keyframes are final: their depth maps and images are in the export folder already
+    folded_files = sorted(p.name for p in (tmp_path / "export" / "depth").iterdir())
+    assert folded_files == [f"{k:06d}.npz" for k in range(state.map.folded_count)]
+    assert len(list((tmp_path / "export" / "images").iterdir())) == state.map.folded_count
+    whole = MapState(settings(tmp_path / "whole", fold_keyframes=False, export_dir=str(tmp_path / "whole_export")))
     feed(whole, msgs[:-1])
     assert len(whole.map.contents) == n and whole.map.folded_count == 0
     assert_same_fused(state.map.fused(), whole.map.fused())
@@ -263,6 +267,16 @@ def test_a_long_stream_holds_a_bounded_window_and_gives_the_map_without_folding(
     assert len(read_colmap(tmp_path / "export" / "colmap")) == n
     assert len(list((tmp_path / "export" / "depth").iterdir())) == n
     assert len(read_ply(tmp_path / "export" / "map.ply")) == len(whole.map.fused().keys)
+    # ... and it is the export of the map that never folded, written all at the end
+    feed(whole, msgs[-1:])
+    for kind in ("depth", "images", "colmap"):
+        names = sorted(p.name for p in (tmp_path / "export" / kind).iterdir())
+        assert names == sorted(p.name for p in (tmp_path / "whole_export" / kind).iterdir()), kind
+    for name in ("000000.npz", f"{n - 1:06d}.npz"):
+        with np.load(tmp_path / "export" / "depth" / name) as a, np.load(tmp_path / "whole_export" / "depth" / name) as b:
+            np.testing.assert_array_equal(a["depth"], b["depth"])
+    for name in ("images/000000.jpg", "colmap/images.bin", "colmap/points3D.bin"):
+        assert (tmp_path / "export" / name).read_bytes() == (tmp_path / "whole_export" / name).read_bytes(), name
     assert queries.stats(state, STREAM).keyframes == n  # the stats verb counts folded keyframes too
     state.close()
     whole.close()

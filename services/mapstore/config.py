@@ -201,7 +201,8 @@ class MapstoreSettings(KmVipeSettings):
     (``lifecycle.release_free_memory``); 0: never. Re-fusion and exports free large arrays whose heap the allocator
     would otherwise keep, fragmented, for the rest of the process."""
     export_dir: str = ""
-    """When set, write map.ply, depth maps and COLMAP cameras here at end of stream."""
+    """When set, write map.ply, depth maps, keyframe images and the COLMAP model here: the depth maps and images of
+    keyframes as they fold (they are final then), the rest at end of stream."""
     upstream: str = "ba"
     """The stage whose end of stream ends the map: it is exported and the EOS forwarded as ``mapstore``."""
     eos_wait_s: float = 10.0

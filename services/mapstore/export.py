@@ -70,8 +70,14 @@ def depth_image(depth: KeyframeDepth, upsample: int = 8) -> np.ndarray:
     return np.repeat(np.repeat(z, upsample, axis=0), upsample, axis=1)
 
 
+def depth_map_path(folder: Path, kf_id: int, metric: bool) -> Path:
+    """Where keyframe ``kf_id``'s depth map goes: `<kf>.png` when metric, else `<kf>.npz`."""
+    return Path(folder) / f"{kf_id:06d}.{'png' if metric else 'npz'}"
+
+
 def write_depth_maps(folder: Path, depths: dict[int, KeyframeDepth], metric: bool, upsample: int = 8) -> list[Path]:
-    """One depth map per keyframe: `<kf>.png` (uint16 mm) when metric, else `<kf>.npz` (float32, arbitrary scale).
+    """One depth map per keyframe: `<kf>.png` (uint16 mm) when metric, else `<kf>.npz` (float32, arbitrary scale);
+    one of the other kind left by an earlier export (the map became metric since) is removed.
 
     Depths are nearest-upsampled from the 1/8 grid by `upsample` (8 → working resolution).
     """
@@ -80,16 +86,39 @@ def write_depth_maps(folder: Path, depths: dict[int, KeyframeDepth], metric: boo
     out = []
     for kf_id in sorted(depths):
         z = depth_image(depths[kf_id], upsample)
+        path = depth_map_path(folder, kf_id, metric)
         if metric:
             mm = np.clip(np.rint(z * DEPTH_PNG_SCALE), 0, 65535).astype(np.uint16)
-            path = folder / f"{kf_id:06d}.png"
             if not cv2.imwrite(str(path), mm):
                 raise OSError(f"could not write {path}")
         else:
-            path = folder / f"{kf_id:06d}.npz"
             np.savez_compressed(path, depth=z, metric=False)
+        depth_map_path(folder, kf_id, not metric).unlink(missing_ok=True)
         out.append(path)
     return out
+
+
+def image_name(kf_id: int) -> str:
+    """A keyframe's image file name (under `images/`) and COLMAP image name."""
+    return f"{kf_id:06d}.jpg"
+
+
+def is_rigid(pose: np.ndarray, tol: float = 1e-3) -> bool:
+    """A finite world_from_cam whose rotation is orthonormal (a diverged BA can publish one that is not)."""
+    rot = pose[:3, :3]
+    return bool(np.all(np.isfinite(pose)) and np.allclose(rot.T @ rot, np.eye(3), atol=tol))
+
+
+def write_keyframe_files(out: Path, kf_id: int, depth: KeyframeDepth, jpeg: bytes | None, metric: bool) -> list[Path]:
+    """A keyframe's depth map (`depth/`) and, when given, its image (`images/`): what the export writes of a
+    keyframe apart from the COLMAP model; the paths written."""
+    paths = write_depth_maps(Path(out) / "depth", {kf_id: depth}, metric)
+    if jpeg is not None:
+        path = Path(out) / "images" / image_name(kf_id)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(jpeg)
+        paths.append(path)
+    return paths
 
 
 # ----- COLMAP -----------------------------------------------------------------------------------
@@ -410,6 +439,15 @@ class ExportWriter:
         self.add_depth(kf_id, depth)
         if camera is not None:
             self.add_camera(camera, jpeg, depth)
+
+    def add_written(self, kf_id: int, depth: KeyframeDepth, camera: ColmapImage | None, image: bool) -> None:
+        """A keyframe whose depth map (and ``image``, if it has one) :func:`write_keyframe_files` wrote earlier:
+        its camera and observations join the COLMAP model and its files are listed, none written again."""
+        self.depth_paths.append(depth_map_path(self.out / "depth", kf_id, self.metric))
+        if camera is not None:
+            self.colmap.add(camera, depth)
+            if image:
+                self.image_paths.append(self.out / "images" / camera.name)
 
     def close(self) -> ExportResult:
         colmap = self.colmap.close()

@@ -36,7 +36,7 @@ from services.mapstore.archive import ArchivedMaps
 from services.mapstore.config import MapstoreSettings
 from services.mapstore.core.keyframe import KeyframeDepth
 from services.mapstore.core.scoring import PcaBasis
-from services.mapstore.export import ColmapImage, ExportWriter
+from services.mapstore.export import ColmapImage, ExportWriter, image_name, is_rigid
 from services.mapstore.state import MapState
 
 log = logging.getLogger(__name__)
@@ -125,7 +125,9 @@ def finish_stream(state: MapState, msg: Eos, cfg: MapstoreSettings) -> list[tupl
 
 def export_state(state: MapState, out: Path):
     """Write map.ply, depth maps, COLMAP cameras and keyframe images of the current map to `out`: the keyframes
-    are read from the store a page at a time (folded ones are only there), live ones as the map holds them."""
+    are read from the store a page at a time (folded ones are only there), live ones as the map holds them. The
+    depth maps and images of keyframes that folded into ``export_dir`` during the stream are there already
+    (:meth:`MapState.export_folded`): only their cameras and observations join the COLMAP model."""
     with state.lock:
         fused = state.map.fused()
         writer = ExportWriter(out, fused.xyz, fused.colours, state.metric)
@@ -139,18 +141,17 @@ def export_state(state: MapState, out: Path):
                 if content is None or depth is None or pose is None:
                     continue
                 camera = None
-                if _is_rigid(pose):  # a diverged BA can publish such a pose; leave the camera out, not the export
+                if is_rigid(pose):  # a diverged BA can publish such a pose; leave the camera out, not the export
                     h, w = content.image_hw
-                    camera = ColmapImage(f"{k:06d}.jpg", pose, np.asarray(depth.intrinsics), (w, h))
+                    camera = ColmapImage(image_name(k), pose, np.asarray(depth.intrinsics), (w, h))
                 else:
                     log.warning("camera with an invalid pose left out of the export", extra={"seq": k})
-                writer.add(k, depth, camera, state.store.image(k) if camera is not None else None)
+                written = state.exported.get(k) if Path(out) == state.export_dir else None
+                if written is not None and written.metric == state.metric:
+                    writer.add_written(k, depth, camera, written.image)
+                else:
+                    writer.add(k, depth, camera, state.store.image(k) if camera is not None else None)
         return writer.close()
-
-
-def _is_rigid(pose: np.ndarray, tol: float = 1e-3) -> bool:
-    rot = pose[:3, :3]
-    return bool(np.all(np.isfinite(pose)) and np.allclose(rot.T @ rot, np.eye(3), atol=tol))
 
 
 HANDLERS = {Keyframe: handle_keyframe, KeyframeCodes: handle_codes, PcaMessage: handle_pca, Graph: handle_graph,
