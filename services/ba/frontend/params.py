@@ -87,9 +87,10 @@ class FrontendParams:
     background_ba_every: int = 10  # a lossless stream's mapping, when idle, runs the end-of-stream BA over every
     # held keyframe once this many keyframes have joined since the last (0: never; Frontend.refine_globally)
     background_ba_s: float = 3.0  # ... stopping after the iteration that passes this many seconds
-    settled_global_ba_s: float = 5.0  # once background BAs ran, the end-of-stream BA stops after the iteration
+    settled_global_ba_s: float = 2.0  # once background BAs ran, the end-of-stream BA stops after the iteration
     # that passes this many seconds (0: global_ba_s alone bounds it): they gave every held keyframe its iterations
-    # during the stream, so the end only settles the newest (a lossless 2,000-frame room orbit: 24 s otherwise)
+    # during the stream, so the end only settles the newest (a lossless 2,000-frame room orbit: 24 s otherwise;
+    # at 2 s its final ATE is 0.079 m against 0.076 at 5 s, one run each, docs/BENCHMARKS.md)
     realign_focal_change: float = 0.05  # end of stream: frames aligned under a focal this far (relative) from the
     # final one are aligned again with their flow (a frame's relative pose is solved on one camera model)
     final_align_s: float = 8.0  # at end of stream, frames posed without mapping's own flow (tracked on a live
