@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from services.mapstore.core.keyframe import KeyframeDepth
-from services.mapstore.export import ColmapImage, export_all
+from services.mapstore.colmap import ColmapImage
+from services.mapstore.export import export_all
 
 WALL_RADIUS, CAMERA_RADIUS, WALL_HALF_HEIGHT, TURNS = 5.0, 3.0, 1.5, 23
 GRID_H, GRID_W = 24, 32  # the 256x192 working size's 1/8 depth grid

@@ -8,7 +8,8 @@ import pycolmap
 import pytest
 
 from services.mapstore.core.keyframe import KeyframeDepth
-from services.mapstore.export import ColmapImage, ColmapParams, ColmapWriter, export_all, read_colmap, visible_points
+from services.mapstore.colmap import ColmapImage, ColmapParams, ColmapWriter, read_colmap, visible_points
+from services.mapstore.export import export_all
 from services.synth import SynthConfig, SynthWorld
 
 KEYFRAMES = (0, 4, 8, 12, 16, 20)

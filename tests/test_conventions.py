@@ -10,7 +10,7 @@ from services.features.core.depth import sensor_disparity
 from services.features.core.geometry import Intrinsics
 from services.ingest.sources import open_source
 from services.mapstore.core.geometry import grid_intrinsics
-from services.mapstore.export import ColmapImage, write_colmap
+from services.mapstore.colmap import ColmapImage, write_colmap
 from services.synth import SynthConfig, SynthWorld
 
 K = Intrinsics(500.0, 480.0, 255.5, 191.5)

@@ -10,8 +10,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from services.mapstore.core.keyframe import KeyframeDepth
-from services.mapstore.export import (ColmapImage, export_all, label_palette, read_colmap, read_ply, visible_points,
-                                      write_colmap, write_depth_maps, write_ply)
+from services.mapstore.colmap import ColmapImage, read_colmap, visible_points, write_colmap
+from services.mapstore.export import export_all, label_palette, read_ply, write_depth_maps, write_ply
 
 
 def random_pose(rng: np.random.Generator) -> np.ndarray:

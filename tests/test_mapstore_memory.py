@@ -21,7 +21,8 @@ from services.mapstore.config import CarvingParams, MapParams, MapstoreSettings
 from services.mapstore.core.fusion import FrozenSums, make_contribution, merge_contributions
 from services.mapstore.core.map import KeyframeMap, code_maps_to_latest
 from services.mapstore.core.scoring import PcaBasis
-from services.mapstore.export import read_colmap, read_ply
+from services.mapstore.colmap import read_colmap
+from services.mapstore.export import read_ply
 from services.mapstore.service import handle, stream_complete
 from services.mapstore.state import MapState
 from tests.helpers.carving_scene import (BOX, CHAIR, H, INTR, MOVED_BOX, W, add_keyframe, cam_pose, cell_labels,

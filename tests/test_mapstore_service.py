@@ -16,7 +16,8 @@ from services.common.errors import DecodeError
 from services.common.schema import Eos, Graph, Keyframe, MapQuery, PcaBasis as PcaMessage, decode
 from services.mapstore import queries
 from services.mapstore.config import MapstoreSettings
-from services.mapstore.export import read_colmap, read_ply
+from services.mapstore.colmap import read_colmap
+from services.mapstore.export import read_ply
 from services.mapstore.service import handle
 from services.mapstore.state import MapState
 

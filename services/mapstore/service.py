@@ -36,7 +36,8 @@ from services.mapstore.archive import ArchivedMaps
 from services.mapstore.config import MapstoreSettings
 from services.mapstore.core.keyframe import KeyframeDepth
 from services.mapstore.core.scoring import PcaBasis
-from services.mapstore.export import ColmapImage, ExportWriter, image_name, is_rigid
+from services.mapstore.colmap import ColmapImage
+from services.mapstore.export import ExportWriter, image_name, is_rigid
 from services.mapstore.state import MapState
 
 log = logging.getLogger(__name__)

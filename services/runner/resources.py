@@ -125,12 +125,9 @@ def _own_usage(proc: psutil.Process, with_reaped: bool) -> tuple[float | None, f
                 cpu += times.children_user + times.children_system
         except (psutil.NoSuchProcess, psutil.AccessDenied):
             pass
-        try:
-            rss = float(proc.memory_info().rss)
-        except (psutil.NoSuchProcess, psutil.AccessDenied):
-            pass
-    try:  # outside oneshot: it reads smaps_rollup, not the stat files oneshot caches
-        pss = float(proc.memory_full_info().pss)
-    except (psutil.NoSuchProcess, psutil.AccessDenied, AttributeError):  # no pss on this platform
+    try:  # RSS and PSS in one call (Linux: PSS from smaps_rollup); platforms without PSS give RSS alone
+        memory = proc.memory_full_info()
+        rss, pss = float(memory.rss), getattr(memory, "pss", None)
+    except (psutil.NoSuchProcess, psutil.AccessDenied):
         pass
-    return cpu, rss, pss
+    return cpu, rss, (None if pss is None else float(pss))

@@ -213,8 +213,8 @@ class Frontend:
         """A lossless stream's background refinement (mapping's spare time, or after a keyframe when ba sets the
         pace): once ``background_ba_every`` keyframes have joined since the last one, the end of stream's BA over
         every keyframe held, bounded to ``background_ba_s``, so the map outside the window is refined during the
-        stream and the end of stream's own BA only settles it (bounded to ``settled_global_ba_s`` once one ran). Every keyframe's pose and map in the
-        update (empty when none is due, or the BA was refused). A live stream's mapping has no such time: a BA
+        stream and the end of stream's own BA only settles it (bounded to ``settled_global_ba_s`` once one ran).
+        Every keyframe's pose and map in the update (empty when none is due, or the BA was refused). A live stream's mapping has no such time: a BA
         over 100 keyframes takes seconds, and keyframes would queue behind it."""
         g, p = self.graph, self.params
         if (g is None or not self.initialised or self._live or p.background_ba_every <= 0
