@@ -163,6 +163,36 @@ def test_spare_time_runs_the_global_ba_once_enough_keyframes_joined_and_never_fo
     assert params.global_ba_s == 0 and live._end_bound_s() == 0  # unbounded where no background BA ran
 
 
+def test_a_background_ba_over_the_newest_keyframes_leaves_the_older_ones_where_they_are():
+    """``background_ba_keyframes`` bounds the background BA (its memory and time grow with its edges): it spans the
+    newest that many held keyframes, the oldest of them its gauge; the keyframes before them keep their poses and
+    maps, and the update carries the maps of the keyframes it spanned only."""
+    from services.ba.frontend.params import GraphParams
+
+    world, msgs = synth_stream(n_frames=60, rendered=27, every=3, width=256)
+    params = FrontendParams(graph=GraphParams(window=3), background_ba_every=8, background_ba_keyframes=5,
+                            focal_after=1000, global_ba=BAParams(iterations=3))
+    fe = Frontend(params)
+    for msg in msgs[:-1]:
+        if isinstance(msg, Keyframe):
+            fe.add_keyframe(KeyframeInput(msg.seq, msg.t_ns, msg.image, msg.intrinsics, msg.codes))
+        else:
+            fe.add_frame(FrameInput(msg.seq, msg.t_ns, msg.image))
+    g = fe.graph
+    assert len(g) >= 7  # more than the 5 it spans and its gauge
+    poses, disparity = [p.clone() for p in g.poses], [d.clone() for d in g.disparity]
+    update = fe.refine_globally()
+    assert update.graph is not None and update.graph.updated_seqs.tolist() == g.seqs[-5:]
+    gauge = len(g) - 5
+    for k in range(len(g)):
+        pose_moved = float((g.poses[k] - poses[k]).abs().max())
+        map_moved = float((g.disparity[k] - disparity[k]).abs().max())
+        assert (pose_moved == 0) == (k <= gauge), (k, pose_moved)  # the older ones and the gauge keep their pose
+        assert (map_moved == 0) == (k < gauge), (k, map_moved)  # the gauge's map is in the BA
+    rmse, length = ate_of(world, update.graph.kf_seqs, update.graph.poses)
+    assert rmse < 0.01 * length
+
+
 def test_end_of_stream_solves_every_measured_frame_again_with_the_flow_it_has():
     """A frame is aligned once its next keyframe comes, against its keyframes and the focal of that moment. A
     calibration that settles late (a 40 deg lens started from the 60 deg prior) leaves early frames' relative poses

@@ -46,6 +46,33 @@ def test_handlers_refuse_bad_keyframes_without_crashing():
     assert state.frontend.graph is None  # reset for the next stream
 
 
+def test_the_final_graph_goes_out_before_the_frames_are_solved_again():
+    """With ``publish``, the EOS handler sends the final graph (and intrinsics) as soon as the end-of-stream BA
+    settled the keyframes, so the mapstore exports while ba solves its frames; the final poses and the EOS follow
+    in what it returns, and a mapstore that restarts is sent all of it."""
+    cfg = _settings()
+    state = service.build_state(cfg)
+    _, msgs = synth_stream(n_frames=40, rendered=9, every=4, stream=STREAM, width=128)
+    for msg in msgs[:-1]:
+        service.handle(state, msg, cfg)
+    events: list[str] = []
+    solve_frames = state.frontend.solve_frames
+
+    def solving():  # the frontend's own method, called through; it records when it ran
+        events.append("frames solved")
+        return solve_frames()
+
+    state.frontend.solve_frames = solving
+    published: list = []
+    out = [m for _, m in service.handle(state, msgs[-1], cfg, publish=lambda outs: (
+        events.append("published"), published.extend(m for _, m in outs)))]
+    assert events == ["published", "frames solved"]
+    assert [type(m) for m in published] == [Graph, Intrinsics] and published[0].final
+    assert published[0].kf_seqs.tolist() == [0, 4, 8]
+    assert [type(m) for m in out] == [Poses, Eos] and out[0].final and out[0].frame_seqs.tolist() == list(range(9))
+    assert [type(m) for _, m in state.final_outputs] == [Graph, Intrinsics, Poses, Eos]
+
+
 def test_stream_over_zenoh(unix_endpoint):
     cfg = _settings()
     world, msgs = synth_stream(n_frames=40, rendered=17, every=4, stream=STREAM, width=256)

@@ -84,3 +84,32 @@ def test_frames_lost_on_the_way_are_counted_in_the_end_of_stream(tmp_path, missi
         time.sleep(0.05)
         out += closing_outputs(state)
     assert eos and eos[0].lost == lost and eos[0].dropped == 0
+
+
+def test_lossless_credit_holds_while_ba_is_keyframes_or_frames_behind_and_the_mapstore_keyframes_behind(tmp_path):
+    """ba is held to ``ba_keyframes`` keyframes (its work) and ``downstream_frames`` messages behind what features
+    published; the mapstore to ``downstream_keyframes`` keyframes; a silent stage no longer holds anyone back."""
+    from services.features.service import credit_limit
+
+    write_tiny_model("dinov2-vitb14-reg", tmp_path)
+    cfg = FeaturesSettings(stream="s", backbone="dinov2-vitb14-reg", models_dir=tmp_path, device="cpu",
+                           ba_keyframes=2, downstream_frames=10, downstream_keyframes=3, credit_window=4)
+    state = build_state(cfg)
+    state.last_seq, now = 40, 100.0
+    state.started = now - 1.0
+    state.sent.extend((s, s % 8 == 0) for s in range(41))  # keyframes 0, 8, 16, 24, 32, 40
+    open_credit = state.last_seq + cfg.credit_window
+
+    def limit(ba: int, mapstore: int, ba_seen: float = now) -> int:
+        state.downstream.update({"ba-1.0": (ba, ba_seen), "mapstore-1.0": (mapstore, now)})
+        return credit_limit(state, cfg, now)
+
+    assert limit(ba=39, mapstore=39) == open_credit  # one keyframe (40) behind each
+    assert limit(ba=31, mapstore=39) == state.last_seq  # ba: 32 and 40 to do, 9 messages
+    assert limit(ba=33, mapstore=39) == open_credit  # ba: one keyframe, 7 messages
+    assert limit(ba=33, mapstore=23) == state.last_seq  # the mapstore: 24, 32, 40
+    assert limit(ba=33, mapstore=24) == open_credit
+    cfg_frames = cfg.model_copy(update={"ba_keyframes": 10})
+    state.downstream.update({"ba-1.0": (29, now)})
+    assert credit_limit(state, cfg_frames, now) == state.last_seq  # 11 messages behind, two keyframes
+    assert limit(ba=0, mapstore=39, ba_seen=now - cfg.downstream_ttl_s - 1) == open_credit  # ba went silent

@@ -213,6 +213,44 @@ def test_a_batch_commits_each_message_and_fuses_once_to_the_same_map(tmp_path):
     batched.close()
 
 
+def test_the_map_is_exported_on_the_final_graph_before_bas_end_of_stream(tmp_path, unix_endpoint):
+    """Over Zenoh: once ba's final graph and every keyframe it names are in, the mapstore exports (ba solves its
+    frames again meanwhile); ba's EOS then only closes the stream, and the EOS forwarded counts the export's time."""
+    import threading
+
+    from services.common import keys
+    from services.common.bus import Bus
+    from services.common.config import BusSettings
+    from services.mapstore.service import run
+    from tests.conftest import wait_until
+
+    out = tmp_path / "export"
+    cfg = settings(tmp_path, export_dir=str(out))
+    msgs = stream_messages(4)
+    stop = threading.Event()
+    with Bus(BusSettings(listen=[unix_endpoint]), "mapstore") as mbus, \
+            Bus(BusSettings(connect=[unix_endpoint]), "tester") as bus:
+        ends = bus.inbox({keys.topic(STREAM, keys.EOS): [Eos]})
+        worker = threading.Thread(target=run, args=(cfg, mbus, stop), daemon=True)
+        worker.start()
+        wait_until(lambda: "mapstore" in bus.alive(timeout=0.2), 10, "the mapstore to be alive")
+        for msg in msgs[:-2]:  # everything but the final graph and the EOS
+            bus.publish(keys.topic(STREAM, msg.KIND), msg)
+        assert ends.get(1.0) is None and not (out / "map.ply").exists()  # no final graph yet: no export
+        bus.publish(keys.topic(STREAM, keys.GRAPH), msgs[-2])
+        wait_until(lambda: (out / "colmap" / "points3D.bin").exists(), 20, "the export on the final graph")
+        exported_at = (out / "map.ply").stat().st_mtime_ns
+        assert ends.get(0.5) is None  # the stream is not over until ba says so
+        bus.publish(keys.topic(STREAM, keys.EOS), msgs[-1])
+        while (got := ends.get(20.0)) is not None and got.msg.stage != "mapstore":  # ours comes back to us too
+            pass
+        stop.set()
+        worker.join(10)
+    assert got is not None and got.msg.stage == "mapstore" and got.msg.count == 4 and got.msg.work_s > 0
+    assert (out / "map.ply").stat().st_mtime_ns == exported_at  # not written again
+    assert len(read_colmap(out / "colmap")) == 4
+
+
 @pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="thread niceness is read from Linux /proc")
 def test_the_map_is_fused_on_a_thread_behind_tracking_and_mapping(tmp_path, tcp_endpoint):
     """The stream's thread (commits and re-fusion) runs at ``fusion_nice``; the process's other threads (the bus,

@@ -34,6 +34,11 @@ def test_demo_runs_and_reports_what_ran(tmp_path):
     assert "frames:            36" in result.stdout
     assert "kmvipe cam0" in result.stderr  # the progress bar
     assert (out / "logs" / "ingest.log").is_file()
+    timeline = [line.split(",") for line in (out / "resources.csv").read_text().splitlines()]
+    assert timeline[0] == ["t_s", "service", "cpu_s", "rss_mb", "pss_mb"]
+    assert {row[1] for row in timeline[1:]} == set(summary["services_ran"])  # every service, every sample
+    peak = max(float(row[3]) for row in timeline[1:] if row[1] == "ba") if "ba" in summary["services_ran"] else 0
+    assert peak == pytest.approx(summary["services"].get("ba", {}).get("rss_peak_mb", 0), abs=0.1)
 
 
 def test_unknown_service_and_bad_source_are_clear_errors(tmp_path):

@@ -37,6 +37,10 @@ def test_pss_counts_shared_libraries_once_and_a_child_process_is_counted_with_it
         assert monitor.pss_total_peak_mb == pytest.approx(one.pss_mb + two.pss_mb)
         assert monitor.pss_total_peak_mb < monitor.rss_total_peak_mb
         assert monitor.report()["two"]["pss_peak_mb"] == round(two.pss_peak_mb, 1)
+        monitor.sample()
+        assert [name for _, name, *_ in monitor.timeline] == ["one", "two"] * 2  # every sample, for resources.csv
+        t_s, _, cpu_s, rss_mb, pss_mb = monitor.timeline[-1]
+        assert t_s >= monitor.timeline[0][0] and (rss_mb, pss_mb) == (round(two.rss_mb, 1), round(two.pss_mb, 1))
     finally:
         for proc in procs:
             for child in psutil.Process(proc.pid).children(recursive=True):

@@ -28,6 +28,7 @@ import sys
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -209,18 +210,25 @@ def _as_tensor(codes: np.ndarray | None) -> torch.Tensor | None:
     return None if codes is None else torch.from_numpy(np.asarray(codes, np.float32))
 
 
-def handle_eos(state: BaState, msg: Eos, cfg: BaSettings) -> Outputs:
-    """Features ended: global BA, final graph and poses, then this stage's EOS; the state is reset."""
+def handle_eos(state: BaState, msg: Eos, cfg: BaSettings, publish: Callable[[Outputs], None] | None = None) -> Outputs:
+    """Features ended: global BA, final graph and poses, then this stage's EOS; the state is reset. With
+    ``publish``, the final graph goes out through it as soon as the BA settled it, so the mapstore exports the map
+    while the frames are solved again; the rest is returned (all of it without ``publish``)."""
     if msg.stage != "features":
         return []
     log.info("end of stream: global BA", extra={"stream": msg.stream, "seq": msg.seq, "keyframes": state.keyframes})
     began = time.monotonic()
+    settled: Outputs = []
+    solved: Outputs = []
     try:
-        outputs = outputs_of(state.frontend, msg, state.frontend.finish(), final=True)
+        settled = outputs_of(state.frontend, msg, state.frontend.settle_keyframes(), final=True)
+        if publish is not None:
+            publish(settled)
+        poses = state.frontend.solve_frames().poses
+        solved = [] if poses is None else [poses_out(msg.stream, msg.seq, msg.t_ns, poses, final=True)]
     except (ValueError, RuntimeError):  # the stream must still end downstream
         log.exception("global BA failed; last online state stands", extra={"stream": msg.stream, "seq": msg.seq})
         state.rejected["global_ba"] += 1
-        outputs = []
     lost = state.frontend.frames.lost_views()
     eos = Eos(msg.stream, max(state.last_seq, msg.seq), time.time_ns(), stage="ba", count=state.keyframes,
               reason=msg.reason, dropped=state.dropped, views_lost=np.array(lost, np.int64).reshape(-1, 2),
@@ -229,22 +237,26 @@ def handle_eos(state: BaState, msg: Eos, cfg: BaSettings) -> Outputs:
                                    "dropped": state.dropped, "views_lost": len(lost),
                                    "keyframes_relocalised": state.frontend.relocalised})
     state.ended_upto = max(state.last_seq, msg.seq)
-    state.final_outputs = outputs + [(keys.topic(msg.stream, keys.EOS), eos)]  # for a mapstore that restarts
+    ended = [(keys.topic(msg.stream, keys.EOS), eos)]
+    state.final_outputs = settled + solved + ended  # for a mapstore that restarts
     state.frontend = Frontend(state.frontend.params, state.frontend.device)
     state.keyframes, state.keyframes_seen, state.last_seq, state.merged = 0, 0, -1, 0
     state.early_codes.clear()
-    return outputs + [(keys.topic(msg.stream, keys.EOS), eos)]
+    return solved + ended if publish is not None else state.final_outputs
 
 
 HANDLERS = {Keyframe: handle_keyframe, FrameLite: handle_frame_lite, KeyframeCodes: handle_codes, PcaBasis: handle_pca,
             Eos: handle_eos}
 
 
-def handle(state: BaState, msg: Message, cfg: BaSettings) -> Outputs:
-    """The error boundary of one message: bad input is logged with its seq, counted, and the loop goes on."""
+def handle(state: BaState, msg: Message, cfg: BaSettings, publish: Callable[[Outputs], None] | None = None) -> Outputs:
+    """The error boundary of one message: bad input is logged with its seq, counted, and the loop goes on.
+    ``publish``: what an EOS sends before it returns (:func:`handle_eos`)."""
     if isinstance(msg, Keyframe):
         state.keyframes_seen += 1
     try:
+        if isinstance(msg, Eos):
+            return handle_eos(state, msg, cfg, publish)
         return HANDLERS[type(msg)](state, msg, cfg)
     except (ValueError, RuntimeError, KeyError, IndexError) as exc:
         state.rejected[msg.KIND] += 1
@@ -331,8 +343,9 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
                     ref = state.frontend.reference()
                     if ref is not None:
                         tracking.set_reference(ref)
-                    if cfg.background_ba_when_busy and not msg.realtime and mapping.qsize():
-                        for key, out in _refine_globally(state):  # when due; idle mapping runs it anyway
+                    # when due; idle mapping runs it anyway; not with the stream's end queued (its BA comes next)
+                    if cfg.background_ba_when_busy and not msg.realtime and mapping.qsize() and not mapping.count(Eos):
+                        for key, out in _refine_globally(state):
                             bus.publish(key, out)
                     if checkpoints.due():
                         checkpoints.save(state)
@@ -343,7 +356,7 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
             if eos is not None and (recovery.stream_complete(state, eos[0], mapping.qsize())
                                     or time.monotonic() > eos[1]):
                 state.dropped = mapping.dropped + track_box.dropped
-                for key, out in handle(state, eos[0], cfg):
+                for key, out in handle(state, eos[0], cfg, publish=lambda outs: [bus.publish(*o) for o in outs]):
                     bus.publish(key, out)
                 tracking.reset()
                 eos = None

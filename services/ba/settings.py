@@ -91,6 +91,9 @@ class BaSettings(BASettings):
     have joined since the last (0: only at the end of stream)."""
     background_ba_s: float = FrontendParams.background_ba_s
     """... stopping after the iteration that passes this many seconds."""
+    background_ba_keyframes: int = FrontendParams.background_ba_keyframes
+    """... over the newest this many held keyframes (0: every one held): the BA's memory and time grow with its
+    keyframes' edges."""
     background_ba_when_busy: bool = True
     """Lossless streams: the global BA also runs when it is due and keyframes wait (ba sets a lossless stream's
     pace: with no spare time it would never run, and the end of stream would do all of it)."""
@@ -196,6 +199,7 @@ class BaSettings(BASettings):
             live_max_deferred=self.live_max_deferred, final_align_s=self.final_align_s,
             live_window=self.live_window, live_flow_preset=self.live_flow_preset,
             live_calibration=self.live_calibration, background_ba_every=self.background_ba_every,
+            background_ba_keyframes=self.background_ba_keyframes,
             background_ba_s=self.background_ba_s, settled_global_ba_s=self.settled_global_ba_s,
             global_ba_s=self.global_ba_s, relocalise=self.relocalise_params())
 

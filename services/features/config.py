@@ -66,6 +66,9 @@ class FeaturesSettings(KmVipeSettings):
     and the queue stays bounded)."""
     downstream_frames: int = 24
     """Lossless: no credit while ba is this many frames (or keyframes) behind what features published."""
+    ba_keyframes: int = 2
+    """Lossless: no credit while ba is this many keyframes behind either (a keyframe is ~1 s of ba's work here, a
+    frame ~10 ms): what ba has left when the stream ends, before its own end-of-stream work."""
     downstream_keyframes: int = 6
     """Lossless: no credit while the mapstore is this many keyframes behind."""
     await_downstream: list[str] = ["ba", "mapstore"]

@@ -262,9 +262,11 @@ def credit_limit(state: FeaturesState, cfg: FeaturesSettings, now: float) -> int
     for consumer, (seq, seen) in list(state.downstream.items()):
         if now - seen > cfg.downstream_ttl_s:
             continue
-        keyframes_only = consumer.startswith("mapstore")
-        behind = sum(1 for s, is_kf in state.sent if s > seq and (is_kf or not keyframes_only))
-        if behind >= (cfg.downstream_keyframes if keyframes_only else cfg.downstream_frames):
+        keyframes = sum(1 for s, is_kf in state.sent if s > seq and is_kf)
+        if consumer.startswith("mapstore"):
+            if keyframes >= cfg.downstream_keyframes:
+                return hold
+        elif keyframes >= cfg.ba_keyframes or sum(1 for s, _ in state.sent if s > seq) >= cfg.downstream_frames:
             return hold
     while state.sent and len(state.sent) > 4 * cfg.downstream_frames:  # older entries no longer count
         state.sent.popleft()

@@ -110,18 +110,34 @@ def stream_complete(state: MapState) -> bool:
         return all(done(k) for k in state.final_keyframes)
 
 
+def export_final(state: MapState, cfg: MapstoreSettings) -> None:
+    """ba's final graph is in and the stream complete: the export, before ba's EOS (ba solves its frames again
+    meanwhile; the export needs only the keyframes). Its seconds go into this stage's EOS."""
+    began = time.monotonic()
+    try:
+        if cfg.export_dir:
+            export_state(state, Path(cfg.export_dir))
+    except (ValueError, LookupError, ArithmeticError, OSError):  # the stream still ends, the map is in the store
+        log.exception("export failed", extra={"stream": cfg.stream, "export_dir": cfg.export_dir})
+    state.final_export_s = time.monotonic() - began
+    log.info("map exported on ba's final graph", extra={"stream": cfg.stream, "seconds": round(state.final_export_s, 2)})
+
+
 def finish_stream(state: MapState, msg: Eos, cfg: MapstoreSettings) -> list[tuple[str, Message]]:
     began = time.monotonic()
-    state.pending_eos, state.final_keyframes = None, None
     log.info("end of stream", extra={"stream": msg.stream, "seq": msg.seq, "stage": msg.stage,
                                      "keyframes_without_codes": state.without_codes_count(),
-                                     "keyframes_folded": state.map.folded_count, "late_codes": state.late_codes})
-    if cfg.export_dir:
-        export_state(state, Path(cfg.export_dir))
+                                     "keyframes_folded": state.map.folded_count, "late_codes": state.late_codes,
+                                     "exported_before": state.final_export_s is not None})
+    if state.final_export_s is None:  # ba's EOS came first, or eos_wait_s passed: export the map as it is
+        export_final(state, cfg)
+    state.pending_eos, state.final_keyframes = None, None
+    work_s = time.monotonic() - began + state.final_export_s
+    state.final_export_s = None
     state.store.set_meta({"finished": "1"})  # nothing to resume after a restart
     count = state.keyframe_count()
     return [(keys.topic(msg.stream, keys.EOS), Eos(msg.stream, msg.seq, time.time_ns(), stage="mapstore", count=count,
-                                                    work_s=round(time.monotonic() - began, 3)))]
+                                                    work_s=round(work_s, 3)))]
 
 
 def export_state(state: MapState, out: Path):
@@ -252,6 +268,8 @@ def run(cfg: MapstoreSettings, bus: Bus, stop: threading.Event, state: MapState 
         fetch.run_due(bus, cfg.stream, state.bases, lambda basis: handle(state, basis, cfg))
         if state.pose_log.due():
             state.pose_log.flush(state.store)
+        if state.final_keyframes is not None and state.final_export_s is None and stream_complete(state):
+            export_final(state, cfg)
         held = state.pending_eos
         if held is not None and (stream_complete(state) or time.monotonic() > state.eos_deadline):
             for key, out in _guarded(finish_stream, state, held, cfg):

@@ -119,6 +119,7 @@ class MapState:
         self.final_keyframes: set[int] | None = None
         self.pending_eos = None
         self.eos_deadline = 0.0
+        self.final_export_s: float | None = None  # the export ran on the final graph (before ba's EOS), in seconds
         log.info("map loaded", extra={"stream": cfg.stream, "keyframes": self.keyframe_count(),
                                       "folded": self.map.folded_count, "held": len(self.map.held),
                                       "without_codes": self.without_codes_count(),

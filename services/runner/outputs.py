@@ -50,6 +50,19 @@ def write_live(out: Path, first_poses: dict[int, tuple[float, int, object]], see
     return written
 
 
+def write_resources(out: Path, timeline: list[tuple[float, str, float, float, float | None]]) -> list[str]:
+    """``resources.csv``: every sample of every service's CPU seconds, RSS and PSS (MB) since the runner started
+    (``ResourceMonitor.timeline``), to see when a peak came and which service made it."""
+    if not timeline:
+        return []
+    path = out / "resources.csv"
+    with path.open("w") as csv:
+        csv.write("t_s,service,cpu_s,rss_mb,pss_mb\n")
+        for t_s, name, cpu_s, rss_mb, pss_mb in timeline:
+            csv.write(f"{t_s},{name},{cpu_s},{rss_mb},{'' if pss_mb is None else pss_mb}\n")
+    return [str(path)]
+
+
 def write_outputs(out: Path, source: str, report: RunReport, poses: dict[int, tuple[int, object]],
                   first_poses: dict[int, tuple[float, int, object]], provisional: set[int],
                   also_written: list[str] = ()) -> list[str]:

@@ -26,7 +26,7 @@ from ..common.errors import KmVipeError
 from ..common.schema import Credit
 from . import children as kids
 from .observer import Observer, fill_report, settle
-from .outputs import write_live, write_outputs
+from .outputs import write_live, write_outputs, write_resources
 from .rerun_log import RerunSettings
 from .rerun_recorder import open_recorder
 from .resources import ResourceMonitor
@@ -196,6 +196,7 @@ def run_pipeline(cfg: RunSettings, on_outputs: Callable[[RunReport], None] | Non
         report.rerun = recorder.close(services_up=not report.stopped_by)  # the map and answers need the services
         report.settings = {"run": run_settings(cfg), "services": probe.result()}
         live = write_live(cfg.out, first_poses, seen_at, first_tracked, provisional)
+        live += write_resources(cfg.out, list(monitor.timeline))
         live += [report.rerun["path"]] if report.rerun.get("path") else []
         report.outputs = write_outputs(cfg.out, cfg.source, report, poses, first_poses, provisional, live)
         if on_outputs is not None:

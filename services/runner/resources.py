@@ -4,7 +4,7 @@ Each service is one child process of the runner, with its own children counted i
 runner calls
 :meth:`ResourceMonitor.sample` from its follow loop about every half second, and always before it polls the
 children (``Popen.poll`` reaps an exited child, after which its CPU time is gone; before that a zombie still
-reports it). Peak RSS is the largest sample; CPU is user + system seconds at the last sample, and ``cpu_stream_s``
+reports it). Every sample is kept for ``resources.csv``. Peak RSS is the largest sample; CPU is user + system seconds at the last sample, and ``cpu_stream_s``
 the part of it spent after :meth:`mark_stream_start` (while the stream ran, model loading excluded).
 
 RSS counts a shared page in every process that maps it: the services' Python, torch and OpenCV libraries are mapped
@@ -42,6 +42,8 @@ class ResourceMonitor:
     rss_total_peak_mb: float = 0.0
     pss_total_peak_mb: float | None = None  # largest sum of the services' PSS at one sample
     series: list[dict] = field(default_factory=list)  # {"frames", "t_s", "rss_mb": {service: MB}}
+    # every sample: (t_s, service, cpu_s, rss_mb, pss_mb or None), for resources.csv (where a peak came from)
+    timeline: list[tuple[float, str, float, float, float | None]] = field(default_factory=list)
     _procs: dict[str, psutil.Process] = field(default_factory=dict)
     _last: float = float("-inf")
     _t0: float = field(default_factory=time.monotonic)
@@ -73,6 +75,8 @@ class ResourceMonitor:
                 use.pss_mb = pss / MB
                 use.pss_peak_mb = max(use.pss_peak_mb or 0.0, use.pss_mb)
                 total_pss = (total_pss or 0.0) + use.pss_mb
+            self.timeline.append((round(self._last - self._t0, 2), name, round(use.cpu_s, 2), round(use.rss_mb, 1),
+                                  None if use.pss_mb is None else round(use.pss_mb, 1)))
         self.rss_total_peak_mb = max(self.rss_total_peak_mb, total)
         if total_pss is not None:
             self.pss_total_peak_mb = max(self.pss_total_peak_mb or 0.0, total_pss)

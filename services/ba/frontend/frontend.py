@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import time
 
 import numpy as np
 import torch
@@ -28,13 +27,14 @@ from services.ba.frontend.frames import FramePoses, FrameRecord
 from services.ba.frontend.graph import KeyframeGraph, Targets, grid_intrinsics, working_intrinsics
 from services.ba.frontend.inputs import FrameInput, KeyframeInput
 from services.ba.frontend.params import FrontendParams
+from services.ba.frontend.refinement import Refinement
 from services.ba.frontend.tracker import Reference, propagate_disparity
 from services.ba.frontend.updates import Update, graph_update, pose_update
 
 logger = logging.getLogger(__name__)
 
 
-class Frontend:
+class Frontend(Refinement):
     """Stateful frontend; see the module docstring. ``device``: where BA tensors live."""
 
     def __init__(self, params: FrontendParams = FrontendParams(), device: torch.device | str = "cpu"):
@@ -188,83 +188,6 @@ class Frontend:
         self.frames.align(self.graph, frame.seq)
         return Update(poses=pose_update(self.graph, self.frames, [frame.seq]))
 
-    def finish(self) -> Update:
-        """End of stream: BA over every keyframe still held, frames not aligned yet aligned; the final state."""
-        g = self.graph
-        if g is None or len(g) == 0:
-            return Update()
-        static = False
-        if not self.initialised:
-            static = self._force_initialise()
-        began = time.monotonic()
-        if len(g) > 1 and not static:
-            self._global_ba(self._end_bound_s())
-        solved = time.monotonic()
-        # frames after the last keyframe too: at the end no later keyframe will come to bracket them
-        for seq in [s for s, f in self.frames.frames.items() if f.anchor is None]:
-            self.frames.align(g, seq)
-        self.frames.align_at_end(g, time.monotonic() + self.params.final_align_s, self.params.realign_focal_change)
-        logger.info("end of stream: keyframes and frames final", extra={
-            "keyframes": len(g), "frames": len(self.frames.frames), "global_ba_s": round(solved - began, 2),
-            "frames_s": round(time.monotonic() - solved, 2)})
-        return self._update(list(range(len(g))), every_frame=True)
-
-    def refine_globally(self) -> Update:
-        """A lossless stream's background refinement (mapping's spare time, or after a keyframe when ba sets the
-        pace): once ``background_ba_every`` keyframes have joined since the last one, the end of stream's BA over
-        every keyframe held, bounded to ``background_ba_s``, so the map outside the window is refined during the
-        stream and the end of stream's own BA only settles it (bounded to ``settled_global_ba_s`` once one ran).
-        Every keyframe's pose and map in the update (empty when none is due, or the BA was refused). A live stream's mapping has no such time: a BA
-        over 100 keyframes takes seconds, and keyframes would queue behind it."""
-        g, p = self.graph, self.params
-        if (g is None or not self.initialised or self._live or p.background_ba_every <= 0
-                or self._since_global < p.background_ba_every or len(g) <= p.graph.window):
-            return Update()
-        self._since_global = 0
-        self._background_bas += 1
-        if not self._global_ba(p.background_ba_s):
-            return Update()
-        return self._update(list(range(len(g))))
-
-    def _end_bound_s(self) -> float:
-        """The end-of-stream BA's time bound (0: none): ``global_ba_s``, and ``settled_global_ba_s`` once
-        background BAs ran during the stream, whichever is shorter."""
-        bounds = [self.params.global_ba_s]
-        if self._background_bas:
-            bounds.append(self.params.settled_global_ba_s)
-        return min((b for b in bounds if b > 0), default=0.0)
-
-    def _global_ba(self, bound_s: float) -> bool:
-        """The BA over every held keyframe with the global edge set, stopping after the iteration that passes
-        ``bound_s`` seconds (0: all its iterations); False when its result was refused."""
-        g = self.graph
-        everything = list(range(len(g)))
-        began = time.monotonic()
-        should_stop = (lambda: time.monotonic() - began >= bound_s) if bound_s > 0 else None
-        return g.run(everything, g.pairs(everything, self.params.graph.global_radius),
-                     self._ba_params(everything, self.params.global_ba), should_stop) is not None
-
-    def refine_frame(self) -> Update:
-        """Mapping's spare time on a live stream, one frame per call; its revised pose in the update (empty when
-        there is nothing to do). First a tracked frame whose reference keyframe has left the BA window (its depth
-        settled), solved again with tracking's flow (~10 ms); else the oldest frame whose pose no flow of mapping's
-        measured yet (anchored where tracking put it, or interpolated by time), with keyframes on both sides,
-        aligned to them with mapping's own flow (~100 ms). Tracking's cheap flow leaves such frames ~2 cm off on the
-        synthetic world where keyframes are at 3 mm."""
-        g = self.graph
-        if g is None or not self.initialised:
-            return Update()
-        settled = self.frames.resolvable(before=g.seqs[self._window()[0]])
-        if settled:
-            self.frames.resolve(g, settled[0])
-            return Update(poses=pose_update(g, self.frames, settled[:1]))
-        last = g.seqs[-1]
-        seq = next((s for s in self.frames.unmeasured() if s < last), None)
-        if seq is None:
-            return Update()
-        self.frames.measure(g, seq)
-        return Update(poses=pose_update(self.graph, self.frames, [seq]))
-
     # --- keyframes -----------------------------------------------------------------------------------
     def _check(self, kf: KeyframeInput) -> np.ndarray:
         grey, hw = inputs.check_keyframe(kf)
@@ -385,11 +308,15 @@ class Frontend:
             aligned.append(seq)
         anchors = {g.seqs[k] for k in updated}
         frame_seqs = list(self.frames.frames) if every_frame else self.frames.anchored_to(anchors) + aligned
-        focal = float(g.intrinsics[0])
+        poses = pose_update(g, self.frames, sorted(set(frame_seqs)) + sorted(anchors))
+        return Update(graph_update(g, updated, self.metric), poses, self._focal_changed())
+
+    def _focal_changed(self) -> bool:
+        """Whether the focal moved since the last update said so."""
+        focal = float(self.graph.intrinsics[0])
         changed = abs(focal - self._focal) > 1e-6 * abs(self._focal)
         self._focal = focal
-        poses = pose_update(g, self.frames, sorted(set(frame_seqs)) + sorted(anchors))
-        return Update(graph_update(g, updated, self.metric), poses, changed)
+        return changed
 
     @property
     def intrinsics(self) -> np.ndarray | None:

@@ -1,0 +1,122 @@
+"""The frontend's work beyond its sliding window: refinement in mapping's spare time and the end of stream.
+
+A live stream's spare time solves tracked frames again with mapping's own flow (:meth:`refine_frame`); a lossless
+stream's runs a BA over the held keyframes every ``background_ba_every`` keyframes (:meth:`refine_globally`). At the
+end of a stream the BA over every keyframe still held settles them (:meth:`settle_keyframes`: their final graph,
+which the mapstore can export at once) and then the frames are solved again against them (:meth:`solve_frames`).
+A mixin of :class:`~services.ba.frontend.frontend.Frontend`, whose state it works on.
+"""
+from __future__ import annotations
+
+import logging
+import time
+
+from services.ba.frontend.updates import Update, graph_update, pose_update
+
+logger = logging.getLogger(__name__)
+
+
+class Refinement:
+    """End of stream and spare-time refinement of :class:`~services.ba.frontend.frontend.Frontend`."""
+
+    def finish(self) -> Update:
+        """End of stream: :meth:`settle_keyframes` then :meth:`solve_frames`; the final state in one update."""
+        settled = self.settle_keyframes()
+        solved = self.solve_frames()
+        return Update(settled.graph, solved.poses, settled.intrinsics_changed)
+
+    def settle_keyframes(self) -> Update:
+        """End of stream, first half: the BA over every keyframe still held; their final graph (no frame poses),
+        which the mapstore can export while :meth:`solve_frames` runs."""
+        g = self.graph
+        if g is None or len(g) == 0:
+            return Update()
+        static = False
+        if not self.initialised:
+            static = self._force_initialise()
+        began = time.monotonic()
+        if len(g) > 1 and not static:
+            self._global_ba(self._end_bound_s())
+        logger.info("end of stream: keyframes final", extra={"keyframes": len(g),
+                                                             "global_ba_s": round(time.monotonic() - began, 2)})
+        return Update(graph_update(g, list(range(len(g))), self.metric), None, self._focal_changed())
+
+    def solve_frames(self) -> Update:
+        """End of stream, second half (after :meth:`settle_keyframes`): the frames not aligned yet aligned, those
+        held solved again against the final keyframes (bounded by ``final_align_s``); every frame's and keyframe's
+        pose."""
+        g = self.graph
+        if g is None or len(g) == 0:
+            return Update()
+        began = time.monotonic()
+        # frames after the last keyframe too: at the end no later keyframe will come to bracket them
+        for seq in [s for s, f in self.frames.frames.items() if f.anchor is None]:
+            self.frames.align(g, seq)
+        self.frames.align_at_end(g, time.monotonic() + self.params.final_align_s, self.params.realign_focal_change)
+        logger.info("end of stream: frames final", extra={"frames": len(self.frames.frames),
+                                                          "frames_s": round(time.monotonic() - began, 2)})
+        return Update(poses=pose_update(g, self.frames, sorted(self.frames.frames) + list(g.seqs)))
+
+    def refine_globally(self) -> Update:
+        """A lossless stream's background refinement (mapping's spare time, or after a keyframe when ba sets the
+        pace): once ``background_ba_every`` keyframes have joined since the last one, the end of stream's BA over
+        every keyframe held, bounded to ``background_ba_s``, so the map outside the window is refined during the
+        stream and the end of stream's own BA only settles it (bounded to ``settled_global_ba_s`` once one ran).
+        With ``background_ba_keyframes`` set, the BA spans the newest that many held keyframes only (its memory
+        and time bounded by it; the oldest of them is its gauge). Every keyframe's pose and the maps of those it
+        spanned in the update (empty when none is due, or the BA was refused). A live stream's mapping has no such
+        time: a BA over 100 keyframes takes seconds, and keyframes would queue behind it."""
+        g, p = self.graph, self.params
+        if (g is None or not self.initialised or self._live or p.background_ba_every <= 0
+                or self._since_global < p.background_ba_every or len(g) <= p.graph.window):
+            return Update()
+        self._since_global = 0
+        self._background_bas += 1
+        newest = p.background_ba_keyframes if p.background_ba_keyframes > 0 else len(g)
+        keyframes = list(range(max(0, len(g) - newest), len(g)))
+        began = time.monotonic()
+        accepted = self._global_ba(p.background_ba_s, keyframes)
+        logger.info("background BA", extra={"keyframes": len(keyframes), "accepted": accepted,
+                                            "seconds": round(time.monotonic() - began, 2)})
+        return self._update(keyframes) if accepted else Update()
+
+    def _end_bound_s(self) -> float:
+        """The end-of-stream BA's time bound (0: none): ``global_ba_s``, and ``settled_global_ba_s`` once
+        background BAs ran during the stream, whichever is shorter."""
+        bounds = [self.params.global_ba_s]
+        if self._background_bas:
+            bounds.append(self.params.settled_global_ba_s)
+        return min((b for b in bounds if b > 0), default=0.0)
+
+    def _global_ba(self, bound_s: float, keyframes: list[int] | None = None) -> bool:
+        """The BA over ``keyframes`` (positions, the oldest the gauge; default every held keyframe) with the global
+        edge set, stopping after the iteration that passes ``bound_s`` seconds (0: all its iterations); False when
+        its result was refused."""
+        g = self.graph
+        keyframes = list(range(len(g))) if keyframes is None else keyframes
+        began = time.monotonic()
+        should_stop = (lambda: time.monotonic() - began >= bound_s) if bound_s > 0 else None
+        return g.run(keyframes, g.pairs(keyframes, self.params.graph.global_radius),
+                     self._ba_params(keyframes, self.params.global_ba), should_stop) is not None
+
+    def refine_frame(self) -> Update:
+        """Mapping's spare time on a live stream, one frame per call; its revised pose in the update (empty when
+        there is nothing to do). First a tracked frame whose reference keyframe has left the BA window (its depth
+        settled), solved again with tracking's flow (~10 ms); else the oldest frame whose pose no flow of mapping's
+        measured yet (anchored where tracking put it, or interpolated by time), with keyframes on both sides,
+        aligned to them with mapping's own flow (~100 ms). Tracking's cheap flow leaves such frames ~2 cm off on the
+        synthetic world where keyframes are at 3 mm."""
+        g = self.graph
+        if g is None or not self.initialised:
+            return Update()
+        settled = self.frames.resolvable(before=g.seqs[self._window()[0]])
+        if settled:
+            self.frames.resolve(g, settled[0])
+            return Update(poses=pose_update(g, self.frames, settled[:1]))
+        last = g.seqs[-1]
+        seq = next((s for s in self.frames.unmeasured() if s < last), None)
+        if seq is None:
+            return Update()
+        self.frames.measure(g, seq)
+        return Update(poses=pose_update(self.graph, self.frames, [seq]))
+
