@@ -44,7 +44,8 @@ from services.common.restarts import consumer_name
 from services.common.streams import hold, session_of
 from services.common.schema import Credit, Eos, FrameLite, Keyframe, KeyframeCodes, Message, PcaBasis
 from services.ba import recovery
-from services.ba.outputs import Outputs, outputs_at, outputs_of, poses_out
+from services.ba.outputs import Outputs, outputs_of, poses_out
+from services.ba.spare_time import refine_globally, refine_while_idle
 from services.ba.checkpoint import Checkpointer
 from services.ba.frontend.frontend import FrameInput, Frontend, KeyframeInput
 from services.ba.frontend.graph import NativeCodes
@@ -245,8 +246,8 @@ def handle_eos(state: BaState, msg: Eos, cfg: BaSettings, publish: Callable[[Out
     return solved + ended if publish is not None else state.final_outputs
 
 
-HANDLERS = {Keyframe: handle_keyframe, FrameLite: handle_frame_lite, KeyframeCodes: handle_codes, PcaBasis: handle_pca,
-            Eos: handle_eos}
+HANDLERS = {Keyframe: handle_keyframe, FrameLite: handle_frame_lite, KeyframeCodes: handle_codes,
+            PcaBasis: handle_pca}  # and Eos: handle_eos, which may also publish before it returns
 
 
 def handle(state: BaState, msg: Message, cfg: BaSettings, publish: Callable[[Outputs], None] | None = None) -> Outputs:
@@ -313,7 +314,7 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
             live_frame = delivery is not None and isinstance(delivery.msg, FrameLite) and delivery.msg.realtime
             if delivery is None or (live_frame and tracking.in_process):
                 waits_for = (mapping,) if tracking.in_process else (mapping, track_box)
-                for key, out in _refine_while_idle(state, waits_for, cfg):
+                for key, out in refine_while_idle(state, waits_for, cfg):
                     bus.publish(key, out)
             msg = delivery.msg if delivery is not None else None
             if isinstance(msg, Eos) and msg.stage == "features":
@@ -345,7 +346,7 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
                         tracking.set_reference(ref)
                     # when due; idle mapping runs it anyway; not with the stream's end queued (its BA comes next)
                     if cfg.background_ba_when_busy and not msg.realtime and mapping.qsize() and not mapping.count(Eos):
-                        for key, out in _refine_globally(state):
+                        for key, out in refine_globally(state):
                             bus.publish(key, out)
                     if checkpoints.due():
                         checkpoints.save(state)
@@ -356,8 +357,11 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
             if eos is not None and (recovery.stream_complete(state, eos[0], mapping.qsize())
                                     or time.monotonic() > eos[1]):
                 state.dropped = mapping.dropped + track_box.dropped
-                for key, out in handle(state, eos[0], cfg, publish=lambda outs: [bus.publish(*o) for o in outs]):
-                    bus.publish(key, out)
+                def publish(outputs: Outputs) -> None:
+                    for key, out in outputs:
+                        bus.publish(key, out)
+
+                publish(handle(state, eos[0], cfg, publish=publish))
                 tracking.reset()
                 eos = None
                 if checkpoints.enabled:
@@ -368,40 +372,3 @@ def run(cfg: BaSettings, bus: Bus, stop: threading.Event, state: BaState | None 
     finally:
         tracking.stop()
     return state
-
-
-def _refine_while_idle(state: BaState, inboxes: tuple[Inbox, ...], cfg: BaSettings) -> Outputs:
-    """Mapping has nothing queued: a live stream's frames that tracking posed are aligned again with mapping's own
-    flow (``Frontend.refine_frame``), a few at a time, until a message comes to one of ``inboxes`` (mapping's, and
-    tracking's when tracking runs on a thread of this interpreter: its frame must not wait behind a refinement);
-    their revised poses go out."""
-    out: Outputs = []
-    for _ in range(cfg.refine_frames_per_idle):
-        if any(box.qsize() for box in inboxes):
-            break
-        try:
-            update = state.frontend.refine_frame()
-        except (ValueError, RuntimeError) as exc:  # a refinement is optional: the tracked pose stands
-            log.warning("frame refinement failed", extra={"stream": state.stream, "error": str(exc)})
-            break
-        if update.poses is None:
-            break
-        log.debug("frame refined", extra={"stream": state.stream, "seq": int(update.poses.frame_seqs[-1])})
-        out.append(poses_out(state.stream, int(update.poses.frame_seqs[-1]), time.time_ns(), update.poses, False))
-    if not out and not any(box.qsize() for box in inboxes):
-        out += _refine_globally(state)
-    return out
-
-
-def _refine_globally(state: BaState) -> Outputs:
-    """The BA over every held keyframe, when one is due (``Frontend.refine_globally``): in mapping's spare time,
-    and on a lossless stream also after a keyframe while more wait (``background_ba_when_busy``); its graph and
-    poses go out as revisions."""
-    try:
-        update = state.frontend.refine_globally()
-    except (ValueError, RuntimeError) as exc:  # optional work: the window's state stands
-        log.warning("background global BA failed", extra={"stream": state.stream, "error": str(exc)})
-        return []
-    if update.graph is None:
-        return []
-    return outputs_at(state.frontend, state.stream, int(update.graph.kf_seqs[-1]), time.time_ns(), update, final=False)

@@ -110,6 +110,34 @@ def write_image(out: Path, name: str, jpeg: bytes) -> Path:
     return path
 
 
+class Exported(NamedTuple):
+    """A folded keyframe's files written to the export folder when it folded."""
+
+    metric: bool  # the kind of depth map written (png mm, or npz)
+    image: bool  # its image too (not for a pose no camera can have)
+
+
+class FoldedExports:
+    """The depth maps and images of keyframes as they fold (their depth and pose are final then) into ``out``, so
+    the end of stream writes only the live keyframes' files, the point cloud and the COLMAP model; ``written``
+    says what is there."""
+
+    def __init__(self, out: Path | None) -> None:
+        self.out = out
+        self.written: dict[int, Exported] = {}
+
+    def write(self, kf_id: int, depth: KeyframeDepth, pose: np.ndarray, jpeg_of, metric: bool) -> None:
+        """One keyframe; ``jpeg_of()`` reads its image (only for a pose a camera can have, as the export). One
+        that cannot be written is left to the end of stream's export (logged)."""
+        jpeg = jpeg_of() if is_rigid(pose) else None
+        try:
+            write_keyframe_files(self.out, kf_id, depth, jpeg, metric)
+        except OSError as exc:
+            log.warning("folded keyframe not exported yet", extra={"seq": kf_id, "error": str(exc)})
+            return
+        self.written[kf_id] = Exported(metric, jpeg is not None)
+
+
 # ----- everything at once --------------------------------------------------------------------------
 class ExportResult(NamedTuple):
     """Paths written by `export_all`."""

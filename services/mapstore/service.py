@@ -163,7 +163,7 @@ def export_state(state: MapState, out: Path):
                     camera = ColmapImage(image_name(k), pose, np.asarray(depth.intrinsics), (w, h))
                 else:
                     log.warning("camera with an invalid pose left out of the export", extra={"seq": k})
-                written = state.exported.get(k) if Path(out) == state.export_dir else None
+                written = state.folded_exports.written.get(k) if Path(out) == state.folded_exports.out else None
                 if written is not None and written.metric == state.metric:
                     writer.add_written(k, depth, camera, written.image)
                 else:

@@ -35,7 +35,7 @@ import logging
 import threading
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Iterator, NamedTuple
+from typing import TYPE_CHECKING, Iterator
 
 import cv2
 import numpy as np
@@ -46,7 +46,7 @@ from services.mapstore.core.geometry import sample_cell_colours
 from services.mapstore.core.keyframe import KeyframeContent, KeyframeDepth
 from services.mapstore.core.map import KeyframeMap, code_maps_to_latest
 from services.mapstore.core.scoring import PcaBasis
-from services.mapstore.export import is_rigid, write_keyframe_files
+from services.mapstore.export import FoldedExports
 from services.mapstore.poselog import PoseLog
 from services.mapstore.sessions import archive_other_session
 from services.mapstore.store import MapStore, Thumbnail
@@ -68,13 +68,6 @@ def make_thumbnail(image: np.ndarray, side: int, quality: int) -> Thumbnail | No
     small = cv2.resize(image, size, interpolation=cv2.INTER_AREA) if scale < 1.0 else image
     ok, buf = cv2.imencode(".jpg", cv2.cvtColor(small, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, quality])
     return Thumbnail(buf.tobytes(), size[0], size[1]) if ok else None
-
-
-class Exported(NamedTuple):
-    """A folded keyframe's files written to ``export_dir`` when it folded."""
-
-    metric: bool  # the kind of depth map written (png mm, or npz)
-    image: bool  # its image too (not for a pose no camera can have)
 
 
 class MapState:
@@ -109,8 +102,7 @@ class MapState:
         self.late_codes = 0  # codes that came for a keyframe already folded (committed, not in the map)
         # folded keyframes are final: their depth maps and images go to export_dir as they fold, so the end of
         # stream writes only the keyframes still live, the point cloud and the COLMAP model (export_folded)
-        self.export_dir = Path(cfg.export_dir) if cfg.export_dir else None
-        self.exported: dict[int, Exported] = {}
+        self.folded_exports = FoldedExports(Path(cfg.export_dir) if cfg.export_dir else None)
         self._load()
         self._index: tuple[int, int, ScoringIndex] | None = None  # (map revision, basis version, index)
         self.answers = AnswerCache(cfg.answer_cache)  # findings of recent queries on that index
@@ -369,22 +361,13 @@ class MapState:
                                              "live": len(self.map.live)})
 
     def export_folded(self, ids: list[int]) -> None:
-        """Depth maps and images of keyframes about to fold (their depth and pose are final) into ``export_dir``;
-        one that cannot be written is left to the end of stream's export (logged)."""
-        if self.export_dir is None:
+        """Depth maps and images of keyframes about to fold into ``export_dir`` (:class:`FoldedExports`)."""
+        if self.folded_exports.out is None:
             return
         for kf_id in ids:
             depth, pose = self.map.depths.get(kf_id), self.map.poses.get(kf_id)
-            if depth is None or pose is None:
-                continue
-            jpeg = self.store.image(kf_id) if is_rigid(pose) else None  # no camera, no image: as export_state
-            try:
-                write_keyframe_files(self.export_dir, kf_id, depth, jpeg, self.metric)
-            except OSError as exc:
-                log.warning("folded keyframe not exported yet", extra={"stream": self.cfg.stream, "seq": kf_id,
-                                                                      "error": str(exc)})
-                continue
-            self.exported[kf_id] = Exported(self.metric, jpeg is not None)
+            if depth is not None and pose is not None:
+                self.folded_exports.write(kf_id, depth, pose, lambda k=kf_id: self.store.image(k), self.metric)
 
     # ----- reads ----------------------------------------------------------------------------------
     def committed_seq(self) -> int:

@@ -119,4 +119,3 @@ class Refinement:
             return Update()
         self.frames.measure(g, seq)
         return Update(poses=pose_update(self.graph, self.frames, [seq]))
-
