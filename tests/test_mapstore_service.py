@@ -93,6 +93,18 @@ def test_stream_builds_queryable_map_and_exports(tmp_path):
     state.close()
 
 
+def test_the_export_keeps_the_observations_per_image_the_settings_allow(tmp_path):
+    cap = 5
+    cfg = settings(tmp_path, export_dir=str(tmp_path / "export"), colmap_points_per_image=cap)
+    state = MapState(cfg)
+    for msg in stream_messages():
+        handle(state, msg, cfg)
+    state.close()
+    lines = [x for x in (tmp_path / "export" / "colmap" / "images.txt").read_text().splitlines() if x[:1] != "#"]
+    observations = [len(line.split()) // 3 for line in lines[1::2]]
+    assert len(observations) == 8 and max(observations) == cap  # the cap binds, and holds
+
+
 def test_restart_reloads_identical_map(tmp_path):
     cfg = settings(tmp_path)
     state = MapState(cfg)

@@ -19,6 +19,7 @@ def register(subparsers) -> None:
 
 
 def run_export(args: argparse.Namespace) -> int:
+    from .colmap import ColmapParams
     from .config import MapstoreSettings
     from .service import export_state
     from .state import MapState
@@ -26,9 +27,10 @@ def run_export(args: argparse.Namespace) -> int:
     db = Path(args.db)
     if not db.is_file():
         raise KmVipeError(f"no map database at {db}; `kmvipe run` writes one as <out>/map.db")
-    state = MapState(MapstoreSettings(db_path=str(db), stream=args.stream))
+    cfg = MapstoreSettings(db_path=str(db), stream=args.stream)
+    state = MapState(cfg)
     try:
-        written = export_state(state, Path(args.out))
+        written = export_state(state, Path(args.out), ColmapParams(max_points_per_image=cfg.colmap_points_per_image))
     finally:
         state.close()
     print(f"exported {args.db} to {args.out}: {written}")

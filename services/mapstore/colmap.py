@@ -37,9 +37,12 @@ class ColmapParams:
     rel_depth_tolerance: float = 0.05
     """A keyframe sees a point when |z_point − z_keyframe| ≤ this · z_keyframe at the point's grid cell (the map's
     own multi-view check uses the same 5 %: ConsistencyParams.rel_tolerance)."""
-    max_points_per_image: int = 4096
+    max_points_per_image: int = 2048
     """At most this many observations per image. Every image keeps the visible points that come first in one
-    fixed random order of the map, so the images that share points keep the same ones and tracks stay long."""
+    fixed random order of the map, so the images that share points keep the same ones and tracks stay long. A
+    10,000-frame stream's model at 4096 held 4.9 M observations and was most of the end of stream's export
+    (bench/export.py: 5.2 s at 4096, 3.3 s at 2048); COLMAP's own reconstructions keep a few hundred to a few
+    thousand per image, and the dense map is map.ply."""
     min_track_length: int = 2
     """Points seen by fewer keyframes are left out (one view does not constrain a point)."""
     seed: int = 0

@@ -203,6 +203,8 @@ class MapstoreSettings(KmVipeSettings):
     export_dir: str = ""
     """When set, write map.ply, depth maps, keyframe images and the COLMAP model here: the depth maps and images of
     keyframes as they fold (they are final then), the rest at end of stream."""
+    colmap_points_per_image: int = Field(2048, ge=1)  # ColmapParams.max_points_per_image (not imported: numpy)
+    """At most this many observations per image in the exported COLMAP model (ColmapParams.max_points_per_image)."""
     upstream: str = "ba"
     """The stage whose end of stream ends the map: it is exported and the EOS forwarded as ``mapstore``."""
     eos_wait_s: float = 10.0

@@ -36,7 +36,7 @@ from services.mapstore.archive import ArchivedMaps
 from services.mapstore.config import MapstoreSettings
 from services.mapstore.core.keyframe import KeyframeDepth
 from services.mapstore.core.scoring import PcaBasis
-from services.mapstore.colmap import ColmapImage
+from services.mapstore.colmap import ColmapImage, ColmapParams
 from services.mapstore.export import ExportWriter, image_name, is_rigid
 from services.mapstore.state import MapState
 
@@ -116,7 +116,7 @@ def export_final(state: MapState, cfg: MapstoreSettings) -> None:
     began = time.monotonic()
     try:
         if cfg.export_dir:
-            export_state(state, Path(cfg.export_dir))
+            export_state(state, Path(cfg.export_dir), ColmapParams(max_points_per_image=cfg.colmap_points_per_image))
     except (ValueError, LookupError, ArithmeticError, OSError):  # the stream still ends, the map is in the store
         log.exception("export failed", extra={"stream": cfg.stream, "export_dir": cfg.export_dir})
     state.final_export_s = time.monotonic() - began
@@ -140,14 +140,15 @@ def finish_stream(state: MapState, msg: Eos, cfg: MapstoreSettings) -> list[tupl
                                                     work_s=round(work_s, 3)))]
 
 
-def export_state(state: MapState, out: Path):
+def export_state(state: MapState, out: Path, colmap: ColmapParams | None = None):
     """Write map.ply, depth maps, COLMAP cameras and keyframe images of the current map to `out`: the keyframes
     are read from the store a page at a time (folded ones are only there), live ones as the map holds them. The
     depth maps and images of keyframes that folded into ``export_dir`` during the stream are there already
-    (:meth:`MapState.export_folded`): only their cameras and observations join the COLMAP model."""
+    (:meth:`MapState.export_folded`): only their cameras and observations join the COLMAP model. ``colmap``: which
+    points the COLMAP model carries (default: ColmapParams())."""
     with state.lock:
         fused = state.map.fused()
-        writer = ExportWriter(out, fused.xyz, fused.colours, state.metric)
+        writer = ExportWriter(out, fused.xyz, fused.colours, state.metric, colmap=colmap)
         for records, _ in state.store.iter_keyframes(codes=False):
             for r in records:
                 k = r.kf_id
