@@ -164,6 +164,8 @@ def main() -> None:
     parser.add_argument("--map-lag", type=int, default=0, help="mapping runs this many keyframes behind tracking")
     parser.add_argument("--blank", default=None, metavar="A-B",
                         help="frames A to B (inclusive) go black, as a covered lens (a lost view)")
+    parser.add_argument("--jpeg-quality", type=int, default=None, metavar="Q",
+                        help="each frame through JPEG at quality Q first, as ingest sends it (KMVIPE_INGEST_JPEG_QUALITY)")
     args = parser.parse_args()
     tune_malloc_for_tensors()  # as the ba service does
     torch.set_num_threads(args.threads)
@@ -174,6 +176,8 @@ def main() -> None:
     if args.blank:
         first, last = (int(v) for v in args.blank.split("-"))
         frames = [dataclasses.replace(f, rgb=np.zeros_like(f.rgb)) if first <= f.index <= last else f for f in frames]
+    if args.jpeg_quality is not None:
+        frames = [dataclasses.replace(f, rgb=jpeg_round_trip(f.rgb, args.jpeg_quality)) for f in frames]
     run = run_frontend(frames, args.focal, args.kf_threshold, args.track, args.verbose, live=args.live,
                        map_lag=args.map_lag)
     est = run.trajectory()
@@ -200,6 +204,14 @@ def main() -> None:
         write_tum(args.out, est)
         if args.track:
             write_tum(args.out.with_suffix(".first.txt"), run.trajectory(first=True))
+
+
+def jpeg_round_trip(rgb: np.ndarray, quality: int) -> np.ndarray:
+    """``rgb`` as features sees it after ingest's JPEG at ``quality``."""
+    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:
+        raise ValueError("JPEG encoding failed")
+    return cv2.cvtColor(cv2.imdecode(buf, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
 
 
 def _track(tracker: Tracker | None, frame: SourceFrame, work: np.ndarray, intrinsics: np.ndarray,

@@ -157,6 +157,9 @@ def table(run: Run, summary: dict, meta: dict) -> str:
     rows.append(("ATE first poses after the map (Sim3)",
                  _ate(summary.get("ate_first_poses_mapped"), summary.get("ate_first_poses_mapped_pairs"))))
     rows.append(("ATE final poses (Sim3)", _ate(summary.get("ate_rmse_sim3"), summary.get("ate_pairs"))))
+    fx, error = (summary.get("intrinsics") or [None])[0], summary.get("focal_error_pct")
+    rows.append(("refined fx, source px (error against the true fx)",
+                 "–" if fx is None else f"{fx:.1f}" + ("" if error is None else f" ({error:+.2f} %)")))
     rows.append(("end-to-end fps (frames read / ingest start → last EOS)",
                  f"{read / duration:.2f} ({read} in {duration:.1f} s)" if duration else "–"))
     rows.append(("end of stream (ingest EOS → last EOS)", _fmt(summary.get("end_of_stream_s"), ".1f") + " s"))

@@ -42,7 +42,7 @@ from services.common.logs import setup_logging  # noqa: E402
 from services.evaluation.ate import absolute_trajectory_error  # noqa: E402
 from services.evaluation.trajectory_io import Trajectory, write_tum  # noqa: E402
 from services.ingest.sources import SourceFrame, open_source  # noqa: E402
-from services.runner.groundtruth import source_groundtruth  # noqa: E402
+from services.runner.groundtruth import source_groundtruth, source_intrinsics  # noqa: E402
 from services.synth.profiles import SYNTHETIC, Profile, profile, profile_world  # noqa: E402
 
 FPS = 30.0  # hand-held video rate: the per-frame rates of the profiles are per 1/30 s
@@ -158,12 +158,9 @@ def score(name: str, gt: Trajectory, est: Trajectory, n_frames: int, focal_true:
 
 
 def true_focal(folder: Path) -> float | None:
-    """fx from ``camera.txt`` (fx fy cx cy w h) or KITTI's ``calib.txt`` (P0: fx 0 cx ...)."""
-    if (folder / "camera.txt").is_file():
-        return float((folder / "camera.txt").read_text().split()[0])
-    if (folder / "calib.txt").is_file():
-        return float((folder / "calib.txt").read_text().split()[1])
-    return None
+    """fx of the folder's true intrinsics (``camera.txt`` or KITTI's ``calib.txt``), None without them."""
+    truth = source_intrinsics(str(folder))
+    return None if truth is None else float(truth[0])
 
 
 def run_folder(name: str, folder: Path, rotation_only: tuple[int, int] | None = None) -> list[Row]:

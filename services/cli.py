@@ -74,6 +74,10 @@ def _print_summary(report) -> None:
         print(f"  example queries:   {'available' if q['example'] else 'unavailable'} — {q['example_why']}")
     if report.ate_rmse_sim3 is not None:
         print(f"  ATE (Sim3) vs GT:  {report.ate_rmse_sim3:.4f} RMSE over {report.ate_pairs} poses")
+    if report.intrinsics is not None:
+        fx, fy, cx, cy = report.intrinsics
+        error = "" if report.focal_error_pct is None else f" (fx {report.focal_error_pct:+.2f} % from the true)"
+        print(f"  intrinsics:        fx {fx:.1f} fy {fy:.1f} cx {cx:.1f} cy {cy:.1f} source px{error}")
     _print_live(report)
     if report.rerun:
         r = report.rerun

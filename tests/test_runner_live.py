@@ -19,8 +19,9 @@ import pytest
 
 from services.cli import _print_summary
 from services.common.bus import Delivery
-from services.common.schema import Eos, Frame, Poses
+from services.common.schema import Eos, Frame, Intrinsics, Poses
 from services.runner.observer import Observer, fill_report
+from services.runner.outputs import write_camera
 from services.runner.pipeline import RunReport
 from services.runner.resources import ResourceMonitor
 
@@ -89,6 +90,31 @@ def test_no_ingest_eos_counts_the_frames_seen_and_a_stage_without_eos_reports_no
     assert report.drops == {"ingest": None, "features": None, "ba": None}
 
 
+def test_bas_latest_intrinsics_are_reported_in_the_source_pixels_against_the_true_ones(tmp_path, capsys):
+    """ba publishes its intrinsics at the working resolution (here 256x192 of a 640x480 source, 2.5x): the run
+    reports the latest in the source's pixels (pixel centres at integers: cx' = 2.5 (cx + 0.5) - 0.5), writes them
+    as camera.txt and, where the source has a camera.txt, the focal error against it."""
+    observer = Observer(last_stage="ba")
+    _deliver(observer, Frame("cam0", 0, 0, 640, 480, jpeg=b"x"))
+    for fx in (180.0, 200.0):  # the latest wins
+        _deliver(observer, Intrinsics("cam0", 0, 0, intrinsics=np.array([fx, fx, 127.5, 95.5]), width=256, height=192))
+    report = RunReport("folder", "cam0", ["ingest", "features", "ba"], [])
+    fill_report(report, observer, ResourceMonitor())
+    assert report.intrinsics == [500.0, 500.0, 319.5, 239.5] and report.image_size == [640, 480]
+    source = tmp_path / "source"
+    source.mkdir()
+    (source / "camera.txt").write_text("505 505 319.5 239.5 640 480\n")
+    assert write_camera(tmp_path, str(source), report) == [str(tmp_path / "camera.txt")]
+    assert (tmp_path / "camera.txt").read_text() == "500.000 500.000 319.500 239.500 640 480\n"
+    assert report.focal_error_pct == pytest.approx(100 * (500 / 505 - 1), abs=1e-3)
+    _print_summary(report)
+    printed = capsys.readouterr().out
+    assert "intrinsics:        fx 500.0 fy 500.0 cx 319.5 cy 239.5 source px (fx -0.99 % from the true)" in printed
+    empty = RunReport("folder", "cam0", ["ingest"], [])
+    fill_report(empty, Observer(last_stage="ingest"), ResourceMonitor())
+    assert empty.intrinsics is None and write_camera(tmp_path / "none", str(source), empty) == []
+
+
 def _run(tmp_path: Path, pacing: str) -> tuple[dict, str]:
     assert KMVIPE.is_file(), f"the kmvipe command is not installed beside {sys.executable} (make install)"
     env = {**os.environ, "KMVIPE_FEATURES_BACKBONE": "synth-oracle", "KMVIPE_FEATURES_ORACLE_SOURCE": SPEC}
@@ -115,6 +141,9 @@ def test_a_real_run_reports_posed_fraction_latency_drops_and_resources(tmp_path,
     # the synthetic world has ground truth: both the final poses and the first ones are evaluated
     assert summary["ate_rmse_sim3"] is not None and summary["ate_first_poses"] is not None
     assert summary["ate_first_poses_pairs"] == round(summary["posed_fraction"] * 30)
+    # ba's refined intrinsics in the source's pixels, against the synthetic camera's (no calibration was given)
+    assert summary["image_size"] == [256, 192] and len(summary["intrinsics"]) == 4
+    assert abs(summary["focal_error_pct"]) < 5, summary["intrinsics"]
     assert summary["end_of_stream_s"] >= 0
     # ba's final BA and the mapstore's export are timed by the stage itself, inside its time after ingest's EOS
     stages = summary["end_of_stream_stages"]

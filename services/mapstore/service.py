@@ -65,6 +65,7 @@ def handle_pca(state: MapState, msg: PcaMessage, cfg: MapstoreSettings) -> None:
 
 
 def handle_graph(state: MapState, msg: Graph, cfg: MapstoreSettings) -> None:
+    began = time.monotonic()
     poses = {int(k): np.array(p) for k, p in zip(msg.kf_seqs, msg.poses)}
     depths = {}
     for i, kf_id in enumerate(msg.updated_seqs.tolist()):
@@ -75,9 +76,11 @@ def handle_graph(state: MapState, msg: Graph, cfg: MapstoreSettings) -> None:
             None if msg.static_weights is None else np.array(msg.static_weights[i]),
             None if msg.confidence is None else np.array(msg.confidence[i]))
     refreshed = state.update_graph(poses, depths, msg.metric)
-    if msg.final:
+    if msg.final:  # its re-fusion is part of the end of stream (what the export waits for)
         state.final_keyframes = {int(k) for k in msg.kf_seqs}
-    log.debug("graph applied", extra={"stream": msg.stream, "seq": msg.seq, "keyframes_refreshed": refreshed})
+    log.log(logging.INFO if msg.final else logging.DEBUG, "graph applied", extra={
+        "stream": msg.stream, "seq": msg.seq, "final": msg.final, "keyframes_refreshed": refreshed,
+        "seconds": round(time.monotonic() - began, 2)})
 
 
 def handle_eos(state: MapState, msg: Eos, cfg: MapstoreSettings) -> list[tuple[str, Message]]:

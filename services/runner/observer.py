@@ -1,6 +1,6 @@
-"""What ``kmvipe run`` sees on the bus while a stream runs (frames, poses as they first arrive, each stage's EOS)
-and the live-operation figures of its summary computed from that: posed fraction, capture → pose latency, drops
-per stage, end-of-stream time, each service's CPU and RSS."""
+"""What ``kmvipe run`` sees on the bus while a stream runs (frames, poses as they first arrive, ba's refined
+intrinsics, each stage's EOS) and the live-operation figures of its summary computed from that: posed fraction,
+capture → pose latency, drops per stage, end-of-stream time, each service's CPU and RSS."""
 from __future__ import annotations
 
 import logging
@@ -12,7 +12,8 @@ import numpy as np
 
 from ..common.bus import Delivery
 from ..common.rotations import is_rigid
-from ..common.schema import Eos, Frame, Keyframe, Poses
+from ..common.camera import scale_intrinsics
+from ..common.schema import Eos, Frame, Intrinsics, Keyframe, Poses
 from . import children as kids
 from .resources import ResourceMonitor
 
@@ -30,6 +31,8 @@ class Observer:
         self.last_stage = last_stage
         self.frames = self.keyframes = 0
         self.last_frame_seq = -1
+        self.image_size: tuple[int, int] | None = None  # the source frames' (width, height)
+        self.intrinsics: Intrinsics | None = None  # ba's latest refined intrinsics (working resolution)
         self.poses: dict[int, tuple[int, object]] = {}
         self.mapped: set[int] = set()  # frames whose pose mapping has revised (a later tracking pose never wins)
         self.seen_at: dict[int, float] = {}  # frame seq → monotonic time the runner saw it on the bus
@@ -50,6 +53,7 @@ class Observer:
                 self.frames += 1
                 self.last_frame_seq = msg.seq
                 self.seen_at.setdefault(msg.seq, now)
+                self.image_size = (msg.width, msg.height)
             elif isinstance(msg, Keyframe):
                 self.keyframes += 1
             elif isinstance(msg, Poses):
@@ -69,6 +73,8 @@ class Observer:
                     self.poses[int(seq)] = (int(stamp), pose)
                     if not msg.tracked:
                         self.mapped.add(int(seq))
+            elif isinstance(msg, Intrinsics):
+                self.intrinsics = msg
             elif isinstance(msg, Eos):
                 self.eos[msg.stage] = msg
                 self.eos_at[msg.stage] = now
@@ -87,6 +93,14 @@ def settle(observer: Observer, grace_s: float = 2.0) -> None:
             if ingest_eos is None or observer.frames >= ingest_eos.count:
                 return
         time.sleep(0.02)
+
+
+def source_intrinsics(observer: Observer) -> list[float] | None:
+    """ba's latest refined intrinsics in the source frames' pixels (fx, fy, cx, cy), None before any."""
+    k, size = observer.intrinsics, observer.image_size
+    if k is None or size is None or k.width <= 0 or k.height <= 0:
+        return None
+    return [round(float(v), 3) for v in scale_intrinsics(k.intrinsics, size[0] / k.width, size[1] / k.height)]
 
 
 STAGES = ("ingest", "features", "ba", "mapstore")  # the streaming stages, each ends with an EOS
@@ -116,6 +130,8 @@ def fill_report(report: "RunReport", observer: Observer, monitor: ResourceMonito
     if "features" in observer.eos:
         report.codes_skipped = observer.eos["features"].codes_skipped
         report.frames_lost = observer.eos["features"].lost
+    report.intrinsics = source_intrinsics(observer)
+    report.image_size = None if observer.image_size is None else list(observer.image_size)
     if "ba" in observer.eos and observer.eos["ba"].views_lost is not None:
         report.views_lost = [[int(a), int(b)] for a, b in observer.eos["ba"].views_lost]
     if "ingest" in observer.eos_at and observer.last_stage in observer.eos_at:

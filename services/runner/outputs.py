@@ -1,6 +1,6 @@
 """The files a run writes at its end from what the runner saw on the bus: ``trajectory.txt`` (each frame's latest
 pose), ``trajectory_live.txt`` and ``frames.csv`` (what a live consumer saw), the ATE of each against the source's
-ground truth, and ``summary.json``."""
+ground truth, ``camera.txt`` (the refined intrinsics) and ``summary.json``."""
 from __future__ import annotations
 
 import json
@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..evaluation.trajectory_io import Trajectory, write_tum
-from .groundtruth import evaluate
+from .groundtruth import evaluate, source_intrinsics
 
 if TYPE_CHECKING:
     from .pipeline import RunReport
@@ -63,6 +63,21 @@ def write_resources(out: Path, timeline: list[tuple[float, str, float, float, fl
     return [str(path)]
 
 
+def write_camera(out: Path, source: str, report: RunReport) -> list[str]:
+    """``camera.txt``: ba's refined intrinsics in the source's pixels as ``fx fy cx cy width height`` (the layout of
+    the datasets' camera.txt; ``kmvipe run --intrinsics`` takes its first four), and the focal error against the
+    source's true intrinsics when it has them."""
+    if report.intrinsics is None:
+        return []
+    truth = source_intrinsics(source)
+    if truth is not None and truth[0] > 0:
+        report.focal_error_pct = round(100.0 * (report.intrinsics[0] / float(truth[0]) - 1.0), 3)
+    path = out / "camera.txt"
+    size = "" if report.image_size is None else " {} {}".format(*report.image_size)
+    path.write_text(" ".join(f"{v:.3f}" for v in report.intrinsics) + size + "\n")
+    return [str(path)]
+
+
 def write_outputs(out: Path, source: str, report: RunReport, poses: dict[int, tuple[int, object]],
                   first_poses: dict[int, tuple[float, int, object]], provisional: set[int],
                   also_written: list[str] = ()) -> list[str]:
@@ -85,6 +100,7 @@ def write_outputs(out: Path, source: str, report: RunReport, poses: dict[int, tu
         if ate_placed and ate_placed[0] is not None:
             mapped = ate_placed[0]
             report.ate_first_poses_mapped, report.ate_first_poses_mapped_pairs = mapped.rmse, mapped.n_pairs
+    written += write_camera(out, source, report)
     written += list(also_written)
     written += [str(out / name) for name in ("map.ply", "colmap/cameras.txt") if (out / name).is_file()]
     summary = out / "summary.json"

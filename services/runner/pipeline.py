@@ -75,6 +75,9 @@ class RunReport:
     end_reason: str = ""
     ate_rmse_sim3: float | None = None  # against the source's ground truth, when it has one (final poses)
     ate_pairs: int = 0
+    intrinsics: list[float] | None = None  # ba's refined fx, fy, cx, cy in the source's pixels (also camera.txt)
+    image_size: list[int] | None = None  # the source's width, height
+    focal_error_pct: float | None = None  # fx against the source's true fx, when it has one (groundtruth.py)
     # live operation: what a consumer of the pose stream saw while the stream ran
     frames_read: int = 0  # frames ingest read from the source (its EOS seq + 1), sent or dropped
     posed_fraction: float | None = None  # frames with any pose / frames read (frames ingest dropped: not posed)
@@ -207,7 +210,7 @@ def run_pipeline(cfg: RunSettings, on_outputs: Callable[[RunReport], None] | Non
     gateway = f"http://127.0.0.1:{cfg.port}" if "query_api" in built else None
     with StopSignals() as stop, Bus(BusSettings(mode="router", listen=[endpoint]), "runner") as bus, \
             SettingsProbe(overrides) as probe, open_recorder(cfg.rerun, bus, cfg.stream, gateway) as recorder:
-        for topic in (keys.FRAME, keys.KEYFRAME, keys.POSE, keys.EOS):
+        for topic in (keys.FRAME, keys.KEYFRAME, keys.POSE, keys.INTRINSICS, keys.EOS):
             bus.subscribe(keys.topic(cfg.stream, topic), observer.on_message)
         bus.ready()
         try:

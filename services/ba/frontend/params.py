@@ -87,7 +87,8 @@ class FrontendParams:
     background_ba_every: int = 10  # a lossless stream's mapping, when idle, runs the end-of-stream BA over every
     # held keyframe once this many keyframes have joined since the last (0: never; Frontend.refine_globally)
     background_ba_s: float = 3.0  # ... stopping after the iteration that passes this many seconds
-    background_ba_keyframes: int = 0  # ... over the newest this many held keyframes (0: every one held)
+    background_ba_keyframes: int = 50  # ... over the newest this many held keyframes (0: every one held): ba's
+    # memory peak is this BA (10,000-frame orbit: all services 3.06 -> 2.77 GB RSS, final ATE 0.27 -> 0.25 m)
     settled_global_ba_s: float = 2.0  # once background BAs ran, the end-of-stream BA stops after the iteration
     # that passes this many seconds (0: global_ba_s alone bounds it): they gave every held keyframe its iterations
     # during the stream, so the end only settles the newest (a lossless 2,000-frame room orbit: 24 s otherwise;
