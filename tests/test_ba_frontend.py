@@ -13,7 +13,7 @@ from services.ba.frontend import edges, init, motion
 from services.ba.frontend.frames import interpolate
 from services.ba.frontend.frontend import FrameInput, Frontend, KeyframeInput
 from services.ba.frontend.graph import grid_intrinsics, working_intrinsics
-from services.ba.frontend.params import GraphParams, InitParams, MotionParams
+from services.ba.frontend.params import FrontendParams, GraphParams, InitParams, MotionParams
 
 
 def _rot_deg(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -233,3 +233,22 @@ def test_a_ba_result_whose_keyframe_flies_off_is_refused():
     grown[2:, 0, 3] += 0.25
     assert graph._jumped(BAState(turning, start.disparity, start.intrinsics),
                          BAState(grown, start.disparity, start.intrinsics), stamps) is None
+
+
+@pytest.mark.parametrize("ark_with_focal", [True, False])
+def test_bas_that_refine_the_focal_use_ark_only_where_ark_with_focal(ark_with_focal):
+    """Up to ``focal_until`` keyframes BA refines the focal; with ``ark_with_focal`` off those BAs solve with the
+    fixed kernel (a stream's first codes come late, in a young basis; they still give the static weights), and ARK
+    shapes the solve again once the focal is frozen."""
+    rng = np.random.default_rng(5)
+    import cv2
+
+    texture = cv2.GaussianBlur(rng.integers(0, 255, (96, 128), dtype=np.uint8), (0, 0), 1.5)
+    fe = Frontend(FrontendParams(focal_after=2, focal_until=3, ark_with_focal=ark_with_focal))
+    k = np.array([100.0, 100.0, 63.5, 47.5])
+    for n in range(4):
+        fe.add_keyframe(KeyframeInput(n, n * 100_000_000, np.roll(texture, 2 * n, axis=1), k))
+        ba = fe._ba_params(list(range(len(fe.graph))))
+        refines = 2 <= len(fe.graph) <= 3
+        assert ba.optimise_focal == refines, n
+        assert ba.robust.use_ark and ba.robust.ark_in_solve == (ark_with_focal or not refines), n

@@ -246,6 +246,21 @@ def test_ark_downweights_a_moving_object():
     assert int(stray.sum()) <= 0.02 * obj.sum(), int(stray.sum())
 
 
+def test_ark_kept_out_of_the_solve_still_gives_the_static_weights():
+    """``ark_in_solve=False`` (what the frontend uses while the focal is refined): the steps are the fixed
+    kernel's, to the last digit, and the codes still weigh in on the static weights: the moving block's drop
+    from ~0.04 (its flow alone, measured) to ~0."""
+    win, problem, start, obj = _moving_object_window()
+    shape = dict(fixed_alpha=0.0, alpha_dynamic=-2.0, kappa=0.5, tau=0.05, scale=0.5)
+    fixed = ba.run_ba(start, problem, BAParams(iterations=10, robust=RobustParams(use_ark=False, **shape)))
+    kept_out = ba.run_ba(start, problem, BAParams(iterations=10, robust=RobustParams(ark_in_solve=False, **shape)))
+    torch.testing.assert_close(kept_out.state.poses, fixed.state.poses, rtol=0, atol=1e-12)
+    assert kept_out.costs == fixed.costs
+    on_block = {name: float(res.static_weight[obj].mean()) for name, res in (("codes", kept_out), ("fixed", fixed))}
+    assert on_block["codes"] < 0.1 * on_block["fixed"], on_block
+    assert float(((kept_out.static_weight < 0.5) & obj).sum() / obj.sum()) > 0.9
+
+
 def test_keyframes_that_only_turned_keep_their_depth_while_walked_ones_converge():
     """Three keyframes walk, then four turn on the spot (4 deg each, no baseline between them): no flow constrains
     the turned keyframes' depth, and without the relative disparity damping BA let it wander with the flow's noise

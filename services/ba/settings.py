@@ -43,6 +43,9 @@ class BaSettings(BASettings):
     """ARK shape of consistent pixels: Cauchy too, since DIS flow has outliers on static content as well."""
     robust_scale: float = 0.2
     """Barron scale c in grid pixels."""
+    ark_with_focal: bool = FrontendParams.ark_with_focal
+    """BAs that refine the focal (up to ``focal_until`` keyframes) solve with ARK where codes are in; false: with
+    the fixed kernel until the focal is frozen (the codes still give the static weights)."""
     focal_until: int = FrontendParams.focal_until
     """Freeze the focal length after this many keyframes."""
     init_keyframes: int = InitParams.min_keyframes
@@ -194,7 +197,7 @@ class BaSettings(BASettings):
                                          max_keyframes=self.init_max_keyframes),
             motion=MotionParams(huber=self.motion_huber), ba=self.ba_params(),
             global_ba=self.ba_params(global_ba=True), flow=self.flow_params(), focal_after=self.focal_after,
-            focal_until=self.focal_until, keep_keyframes=self.keep_keyframes,
+            focal_until=self.focal_until, ark_with_focal=self.ark_with_focal, keep_keyframes=self.keep_keyframes,
             live_flow_downscale=self.live_flow_downscale, live_iterations=self.live_iterations,
             live_max_deferred=self.live_max_deferred, final_align_s=self.final_align_s,
             live_window=self.live_window, live_flow_preset=self.live_flow_preset,

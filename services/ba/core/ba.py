@@ -158,7 +158,7 @@ def _ark(res: _Residuals, prep: _Prepared, params: BAParams,
 
 def _frozen(res: _Residuals, params: BAParams, ark: ark_codes.ArkCosine | None) -> _Frozen:
     rob = params.robust
-    if ark is not None:
+    if ark is not None and rob.ark_in_solve:
         alpha = robust.ark_shape(ark.cosine, rob)  # today's centred map or the paper's (RobustParams.ark_mode)
     else:
         alpha = torch.full_like(res.flow_w, rob.fixed_alpha)

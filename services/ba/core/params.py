@@ -11,6 +11,8 @@ class RobustParams:
     """Barron robust kernel on the flow residual norm, with the ARK per-pixel shape."""
 
     use_ark: bool = True  # alpha per pixel from code similarity; False: fixed_alpha everywhere
+    ark_in_solve: bool = True  # with use_ark, ARK's alpha shapes the solve; False: the solve keeps fixed_alpha
+    # and the codes only weigh in on the static weights it reports (what the map leaves out as moving)
     fixed_alpha: float = 2.0  # shape when use_ark is False (2 = L2, 0 = Cauchy, -inf = Welsch)
     alpha_static: float = 2.0  # ARK shape for pixels whose codes agree across views
     alpha_dynamic: float = -2.0  # ARK shape for pixels whose codes disagree (<= 0: heavy tailed)

@@ -26,7 +26,7 @@ from services.ba.frontend import init, inputs, motion, relocalise, start, steps,
 from services.ba.frontend.frames import FramePoses, FrameRecord
 from services.ba.frontend.graph import KeyframeGraph, Targets, grid_intrinsics, working_intrinsics
 from services.ba.frontend.inputs import FrameInput, KeyframeInput
-from services.ba.frontend.params import FrontendParams
+from services.ba.frontend.params import FrontendParams, focal_ba
 from services.ba.frontend.refinement import Refinement
 from services.ba.frontend.tracker import Reference, propagate_disparity
 from services.ba.frontend.updates import Update, graph_update, pose_update
@@ -268,7 +268,7 @@ class Frontend(Refinement):
                 base = dataclasses.replace(base, iterations=self.params.live_iterations)
         focal = (base.optimise_focal and len(window) >= self.params.focal_after
                  and len(self.graph) <= self.params.focal_until)
-        return dataclasses.replace(base, optimise_focal=focal)
+        return focal_ba(base, self.params) if focal else dataclasses.replace(base, optimise_focal=False)
 
     # --- initialisation (services/ba/frontend/start.py) ----------------------------------------------------
     def _try_initialise(self, force: bool = False) -> Update:

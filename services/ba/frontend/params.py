@@ -1,7 +1,7 @@
 """Parameters of the BA frontend (graph management, initialisation, motion-only alignment)."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from services.ba.core.params import BAParams, FlowParams
 
@@ -87,8 +87,9 @@ class FrontendParams:
     background_ba_every: int = 10  # a lossless stream's mapping, when idle, runs the end-of-stream BA over every
     # held keyframe once this many keyframes have joined since the last (0: never; Frontend.refine_globally)
     background_ba_s: float = 3.0  # ... stopping after the iteration that passes this many seconds
-    background_ba_keyframes: int = 50  # ... over the newest this many held keyframes (0: every one held): ba's
-    # memory peak is this BA (10,000-frame orbit: all services 3.06 -> 2.77 GB RSS, final ATE 0.27 -> 0.25 m)
+    background_ba_keyframes: int = 0  # ... over the newest this many held keyframes (0: every one held): ba's
+    # memory peak is this BA, but over the newest 50 KITTI 07 lossless ended at 0.318 m against 0.306 (one run
+    # each, the same focal; docs/BENCHMARKS.md)
     settled_global_ba_s: float = 2.0  # once background BAs ran, the end-of-stream BA stops after the iteration
     # that passes this many seconds (0: global_ba_s alone bounds it): they gave every held keyframe its iterations
     # during the stream, so the end only settles the newest (a lossless 2,000-frame room orbit: 24 s otherwise;
@@ -104,6 +105,10 @@ class FrontendParams:
     live_focal_restarts: tuple[float, ...] = (0.7, 1.4)  # a live stream's calibration skips the restart from the
     # guess itself (the map as it is started there): mapping stalls for it, ~1 s per restart on this CPU
     focal_after: int = 6  # the focal length is refined once the window holds this many keyframes
+    ark_with_focal: bool = False  # BAs that refine the focal solve with ARK where codes are in; False: with the
+    # fixed kernel until the focal is frozen, the codes still giving the static weights (a stream's first codes
+    # come late and in a young, refitted PCA basis: KITTI 07 through the pipeline, focal +0.94 % with ARK,
+    # -0.28 % without; docs/BENCHMARKS.md)
     focal_until: int = 30  # ... and frozen after this many keyframes: under long forward motion focal and depth
     # trade off, and the focal drifts (KITTI 07: 455 -> 371 working px over frames 60-100 when never frozen)
     max_step_growth: float = 4.0  # BA results whose longest keyframe step grows beyond this x the start's are refused
@@ -129,3 +134,10 @@ class FrontendParams:
     focal_range: tuple[float, float] = (0.36, 1.75)  # BA keeps the focal inside this x the first guess (60 deg
     # across the longer side): 115 deg to 36 deg, so 40-110 deg cameras fit. A bound constrains the focal; it never
     # throws a BA result away (the old refusal outside 0.6-1.6 x refused TartanAir's true 90 deg focal, 0.58 x)
+
+
+def focal_ba(ba: BAParams, params: FrontendParams) -> BAParams:
+    """``ba`` refining the focal: solved with ARK only where ``params.ark_with_focal``, else with the fixed kernel
+    (ARK's codes still give the static weights)."""
+    ba = replace(ba, optimise_focal=True)
+    return ba if params.ark_with_focal else replace(ba, robust=replace(ba.robust, ark_in_solve=False))

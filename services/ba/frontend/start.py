@@ -15,7 +15,7 @@ from services.ba.core.params import BAParams
 from services.ba.frontend import init
 from services.ba.frontend.frames import FramePoses, FrameRecord
 from services.ba.frontend.graph import KeyframeGraph
-from services.ba.frontend.params import FrontendParams, InitParams
+from services.ba.frontend.params import FrontendParams, InitParams, focal_ba
 
 logger = logging.getLogger(__name__)
 
@@ -42,7 +42,7 @@ def try_start(graph: KeyframeGraph, frames: FramePoses, params: FrontendParams, 
 def calibrate_focal(graph: KeyframeGraph, frames: FramePoses, params: FrontendParams, live: bool) -> None:
     """Once, at ``focal_after`` keyframes: the multi-start focal calibration (:func:`init.calibrate_focal`); when a
     restart won, the map has a new scale and focal and every frame is aligned again."""
-    ba = dataclasses.replace(params.ba, optimise_focal=True, iterations=params.init.iterations)
+    ba = focal_ba(dataclasses.replace(params.ba, iterations=params.init.iterations), params)
     restarts = params.live_focal_restarts if live else params.focal_restarts
     only_undetermined = live and params.live_calibration == "when_undetermined"
     if init.calibrate_focal(graph, params.init, ba, params.motion, restarts, only_undetermined) is not None \
