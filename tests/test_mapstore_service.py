@@ -16,7 +16,7 @@ from services.common.errors import DecodeError
 from services.common.schema import Eos, Graph, Keyframe, MapQuery, PcaBasis as PcaMessage, decode
 from services.mapstore import queries
 from services.mapstore.config import MapstoreSettings
-from services.mapstore.colmap import read_colmap
+from services.mapstore.colmap import ColmapParams, read_colmap
 from services.mapstore.export import read_ply
 from services.mapstore.service import handle
 from services.mapstore.state import MapState
@@ -103,6 +103,7 @@ def test_the_export_keeps_the_observations_per_image_the_settings_allow(tmp_path
     lines = [x for x in (tmp_path / "export" / "colmap" / "images.txt").read_text().splitlines() if x[:1] != "#"]
     observations = [len(line.split()) // 3 for line in lines[1::2]]
     assert len(observations) == 8 and max(observations) == cap  # the cap binds, and holds
+    assert MapstoreSettings().colmap_points_per_image == ColmapParams().max_points_per_image  # one default
 
 
 def test_restart_reloads_identical_map(tmp_path):
