@@ -19,7 +19,6 @@ def register(subparsers) -> None:
 
 
 def run_export(args: argparse.Namespace) -> int:
-    from .colmap import ColmapParams
     from .config import MapstoreSettings
     from .service import export_state
     from .state import MapState
@@ -27,10 +26,9 @@ def run_export(args: argparse.Namespace) -> int:
     db = Path(args.db)
     if not db.is_file():
         raise KmVipeError(f"no map database at {db}; `kmvipe run` writes one as <out>/map.db")
-    cfg = MapstoreSettings(db_path=str(db), stream=args.stream)
-    state = MapState(cfg)
+    state = MapState(MapstoreSettings(db_path=str(db), stream=args.stream))
     try:
-        written = export_state(state, Path(args.out), ColmapParams(max_points_per_image=cfg.colmap_points_per_image))
+        written = export_state(state, Path(args.out))
     finally:
         state.close()
     print(f"exported {args.db} to {args.out}: {written}")

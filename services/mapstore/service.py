@@ -119,11 +119,12 @@ def export_final(state: MapState, cfg: MapstoreSettings) -> None:
     began = time.monotonic()
     try:
         if cfg.export_dir:
-            export_state(state, Path(cfg.export_dir), ColmapParams(max_points_per_image=cfg.colmap_points_per_image))
+            export_state(state, Path(cfg.export_dir))
     except (ValueError, LookupError, ArithmeticError, OSError):  # the stream still ends, the map is in the store
         log.exception("export failed", extra={"stream": cfg.stream, "export_dir": cfg.export_dir})
     state.final_export_s = time.monotonic() - began
-    log.info("map exported on ba's final graph", extra={"stream": cfg.stream, "seconds": round(state.final_export_s, 2)})
+    log.info("map exported on ba's final graph",
+             extra={"stream": cfg.stream, "seconds": round(state.final_export_s, 2)})
 
 
 def finish_stream(state: MapState, msg: Eos, cfg: MapstoreSettings) -> list[tuple[str, Message]]:
@@ -143,14 +144,15 @@ def finish_stream(state: MapState, msg: Eos, cfg: MapstoreSettings) -> list[tupl
                                                     work_s=round(work_s, 3)))]
 
 
-def export_state(state: MapState, out: Path, colmap: ColmapParams | None = None):
+def export_state(state: MapState, out: Path):
     """Write map.ply, depth maps, COLMAP cameras and keyframe images of the current map to `out`: the keyframes
     are read from the store a page at a time (folded ones are only there), live ones as the map holds them. The
     depth maps and images of keyframes that folded into ``export_dir`` during the stream are there already
-    (:meth:`MapState.export_folded`): only their cameras and observations join the COLMAP model. ``colmap``: which
-    points the COLMAP model carries (default: ColmapParams())."""
+    (:meth:`MapState.export_folded`): only their cameras and observations join the COLMAP model, at most
+    ``colmap_points_per_image`` each."""
     with state.lock:
         fused = state.map.fused()
+        colmap = ColmapParams(max_points_per_image=state.cfg.colmap_points_per_image)
         writer = ExportWriter(out, fused.xyz, fused.colours, state.metric, colmap=colmap)
         for records, _ in state.store.iter_keyframes(codes=False):
             for r in records:

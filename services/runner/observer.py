@@ -95,7 +95,7 @@ def settle(observer: Observer, grace_s: float = 2.0) -> None:
         time.sleep(0.02)
 
 
-def source_intrinsics(observer: Observer) -> list[float] | None:
+def refined_intrinsics(observer: Observer) -> list[float] | None:
     """ba's latest refined intrinsics in the source frames' pixels (fx, fy, cx, cy), None before any."""
     k, size = observer.intrinsics, observer.image_size
     if k is None or size is None or k.width <= 0 or k.height <= 0:
@@ -130,7 +130,7 @@ def fill_report(report: "RunReport", observer: Observer, monitor: ResourceMonito
     if "features" in observer.eos:
         report.codes_skipped = observer.eos["features"].codes_skipped
         report.frames_lost = observer.eos["features"].lost
-    report.intrinsics = source_intrinsics(observer)
+    report.intrinsics = refined_intrinsics(observer)
     report.image_size = None if observer.image_size is None else list(observer.image_size)
     if "ba" in observer.eos and observer.eos["ba"].views_lost is not None:
         report.views_lost = [[int(a), int(b)] for a, b in observer.eos["ba"].views_lost]

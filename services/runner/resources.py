@@ -4,8 +4,9 @@ Each service is one child process of the runner, with its own children counted i
 runner calls
 :meth:`ResourceMonitor.sample` from its follow loop about every half second, and always before it polls the
 children (``Popen.poll`` reaps an exited child, after which its CPU time is gone; before that a zombie still
-reports it). Every sample is kept for ``resources.csv``. Peak RSS is the largest sample; CPU is user + system seconds at the last sample, and ``cpu_stream_s``
-the part of it spent after :meth:`mark_stream_start` (while the stream ran, model loading excluded).
+reports it). Every sample is kept for ``resources.csv``. Peak RSS is the largest sample; CPU is user + system
+seconds at the last sample, and ``cpu_stream_s`` the part of it spent after :meth:`mark_stream_start` (while the
+stream ran, model loading excluded).
 
 RSS counts a shared page in every process that maps it: the services' Python, torch and OpenCV libraries are mapped
 by five or six processes, so a sum of RSS counts them five or six times. PSS (Linux ``smaps_rollup``) splits each
