@@ -14,6 +14,7 @@ from services.ba.core import ba, synthetic
 from services.ba.core.params import BAParams, RobustParams
 from services.ba.frontend.frontend import FrameInput, Frontend, KeyframeInput
 from services.ba.frontend.params import FrontendParams
+from services.ba.frontend.refinement import time_bound
 from services.common.schema import FrameLite, Keyframe
 from tests.test_ba_pipeline_synth import ate_of, synth_stream
 
@@ -108,6 +109,22 @@ def test_end_of_stream_aligns_what_is_left_within_its_time_bound(live):
     no_time.finish()
     assert len(no_time.frames.unmeasured()) == left  # a bound of 0 s leaves tracking's poses as they were
     assert _frame_ate(world, unbounded) < 0.5 * _frame_ate(world, no_time)
+
+
+def test_a_time_bound_stops_before_the_iteration_that_would_overrun_it():
+    """Iterations of 0.5 s under a 1.8 s bound: the solve stops after the third (1.5 s), where the fourth would end
+    at 2.0 s, not after the fourth that passed it; a first iteration already past the bound ends the solve."""
+    now = [0.0]
+    bound = time_bound(1.8, clock=lambda: now[0])
+    stops = []
+    for _ in range(4):
+        now[0] += 0.5
+        stops.append(bound())
+    assert stops == [False, False, True, True]
+    slow = time_bound(1.0, clock=lambda: now[0])
+    now[0] += 1.2
+    assert slow()
+    assert time_bound(0.0) is None
 
 
 def test_end_of_stream_ba_bounded_in_time_still_finishes(live):

@@ -294,17 +294,19 @@ def test_keyframes_that_only_turned_keep_their_depth_while_walked_ones_converge(
     # turned keyframes' translation and depth share the flow's noise once depth is held)
 
 
-@pytest.mark.parametrize("embed", [0.0, 1.0], ids=["flow", "flow+embedding"])
-def test_a_problem_linearised_in_edge_slices_takes_the_same_steps(embed):
-    """A global BA's Jacobians are formed a few edges at a time (``linearise_edges``): slices of 3 edges and all
-    edges at once give the same iterations (ARK, codes, the focal and, parametrised, the embedding term on)."""
+@pytest.mark.parametrize("embed,ark", [(0.0, True), (1.0, True), (0.0, False)],
+                         ids=["flow", "flow+embedding", "fixed kernel"])
+def test_a_problem_linearised_in_edge_slices_takes_the_same_steps(embed, ark):
+    """A global BA's Jacobians, its residuals and its trial energies are formed a few edges at a time
+    (``linearise_edges``): slices of 3 edges and all edges at once give the same iterations (codes and the focal
+    on; ARK or the fixed kernel, whose shape is one broadcast value; parametrised, the embedding term)."""
     win = synthetic.make_window(n=6, h=24, w=32, seed=3, surface="room")
     problem = win.problem._replace(codes=_smooth_codes(6, 24, 32, 8, seed=1))
     start = _start(win, seed=2, focal_factor=1.1)
     assert len(problem.ii) > 3 * 3  # several slices
     runs = {}
     for slices in (0, 3):
-        params = BAParams(iterations=6, robust=RobustParams(use_ark=True, scale=0.5), lambda_embed=embed,
+        params = BAParams(iterations=6, robust=RobustParams(use_ark=ark, scale=0.5), lambda_embed=embed,
                           optimise_focal=True, compute_dtype=EXACT, linearise_edges=slices)
         runs[slices] = ba.run_ba(start, problem, params)
     whole, sliced = runs[0], runs[3]
@@ -314,3 +316,4 @@ def test_a_problem_linearised_in_edge_slices_takes_the_same_steps(embed):
     assert torch.allclose(sliced.state.disparity, whole.state.disparity, rtol=1e-8)
     assert float(sliced.state.intrinsics[0]) == pytest.approx(float(whole.state.intrinsics[0]), rel=1e-10)
     assert torch.allclose(sliced.edge_weight, whole.edge_weight, atol=1e-9)
+    assert torch.allclose(sliced.alpha, whole.alpha) and sliced.alpha.shape == whole.edge_weight.shape

@@ -93,7 +93,7 @@ class BaSettings(BASettings):
     """Lossless streams: mapping's spare time runs the global BA over every held keyframe once this many keyframes
     have joined since the last (0: only at the end of stream)."""
     background_ba_s: float = FrontendParams.background_ba_s
-    """... stopping after the iteration that passes this many seconds."""
+    """... within this many seconds (it stops before an iteration that would end past them)."""
     background_ba_keyframes: int = FrontendParams.background_ba_keyframes
     """... over the newest this many held keyframes (0: every one held): the BA's memory and time grow with its
     keyframes' edges."""
@@ -101,8 +101,8 @@ class BaSettings(BASettings):
     """Lossless streams: the global BA also runs when it is due and keyframes wait (ba sets a lossless stream's
     pace: with no spare time it would never run, and the end of stream would do all of it)."""
     settled_global_ba_s: float = FrontendParams.settled_global_ba_s
-    """Once background global BAs ran, the end-of-stream BA stops after the iteration that passes this many
-    seconds (0: only ``global_ba_s`` bounds it)."""
+    """Once background global BAs ran, the end-of-stream BA stays within this many seconds (0: only ``global_ba_s``
+    bounds it)."""
     live_flow_preset: Literal["ultrafast", "fast", "medium"] = FrontendParams.live_flow_preset
     """Real-time streams: OpenCV DIS preset of keyframe edge flows."""
     live_window: int = FrontendParams.live_window
@@ -154,7 +154,7 @@ class BaSettings(BASettings):
     """Live streams: when mapping has nothing queued, up to this many frames that tracking posed are aligned again
     with mapping's own flow before it looks at its inbox again (0: never; the end of stream still does)."""
     global_ba_s: float = FrontendParams.global_ba_s
-    """The end-of-stream BA stops after the iteration that passes this many seconds (0: all
+    """The end-of-stream BA stops before an iteration that would end past this many seconds (0: all
     ``global_iterations``), so the end of a stream is bounded in time whatever the window holds."""
     final_align_s: float = FrontendParams.final_align_s
     """End of stream: how long frames still posed by tracking alone are aligned again with mapping's flow."""

@@ -16,7 +16,9 @@ the oldest camera so that the distance between camera 0 and the first free camer
 (the energy is invariant under this similarity, so this only picks the gauge).
 
 Every pixel of every edge is processed in one batched tensor expression: no Python loop over pixels, and over
-edges only in slices of ``BAParams.linearise_edges`` (a global BA's Jacobians would not fit in memory at once).
+edges only in slices of ``BAParams.linearise_edges`` (a global BA's Jacobians would not fit in memory at once; its
+residuals and trial energies are evaluated slice by slice too, and a fixed kernel's constants are one broadcast
+value, so what exists for every edge at once is the residuals the IRLS weights and ARK need).
 """
 from __future__ import annotations
 
@@ -117,6 +119,32 @@ class _Residuals(NamedTuple):
 
 
 def _residuals(state: BAState, prep: _Prepared, params: BAParams, with_jac: bool) -> _Residuals:
+    """Residuals of every edge; without Jacobians in a problem linearised in slices (``_sliced``), evaluated a
+    slice at a time and joined: the reprojection's per-pixel intermediates of every edge at once were ~2x the
+    residuals themselves (a 600-edge global BA: +95 MB)."""
+    if with_jac or not _sliced(len(prep.ii), params):
+        return _edge_residuals(state, prep, params, with_jac)
+    n_edges, whole = len(prep.ii), None
+    for edges in _slices(n_edges, params.linearise_edges):
+        part = _edge_residuals(state, _edges(prep, edges), params, False)
+        # every field (E, ...) filled a slice at a time: slices joined by a concatenation would exist twice
+        fields = (part.flow, part.flow_norm, part.flow_w, part.reproj.coords, part.reproj.valid,
+                  *(() if part.embed is None else (part.embed.cosine, part.embed.residual, part.embed.valid)))
+        if whole is None:
+            whole = [t.new_empty((n_edges, *t.shape[1:])) for t in fields]
+        for out, t in zip(whole, fields):
+            out[edges] = t
+    flow, flow_norm, flow_w, coords, valid, *embed = whole
+    return _Residuals(flow, flow_norm, flow_w,
+                      embedding.EmbeddingResidual(embed[0], embed[1], None, embed[2]) if embed else None,
+                      projective.PlaneReprojection(coords, valid, None, None))
+
+
+def _slices(n_edges: int, step: int) -> Iterator[slice]:
+    return (slice(start, min(start + step, n_edges)) for start in range(0, n_edges, step))
+
+
+def _edge_residuals(state: BAState, prep: _Prepared, params: BAParams, with_jac: bool) -> _Residuals:
     n, h, w = state.disparity.shape
     disp = state.disparity.reshape(n, -1)[prep.ii].to(prep.targets.dtype)
     rp = projective.reproject_planes(state.poses[prep.ii], state.poses[prep.jj], disp, prep.pixels,
@@ -160,17 +188,29 @@ def _frozen(res: _Residuals, params: BAParams, ark: ark_codes.ArkCosine | None) 
     rob = params.robust
     if ark is not None and rob.ark_in_solve:
         alpha = robust.ark_shape(ark.cosine, rob)  # today's centred map or the paper's (RobustParams.ark_mode)
-    else:
-        alpha = torch.full_like(res.flow_w, rob.fixed_alpha)
-    kern = robust.kernel(alpha, alpha.dtype, alpha.device)
+        kern = robust.kernel(alpha, alpha.dtype, alpha.device)
+    else:  # one shape everywhere: its constants formed once and broadcast (views), not ~6 (E, P) tensors
+        alpha, kern = _uniform(res.flow_w, rob.fixed_alpha)
     if res.embed is None or params.lambda_embed <= 0:
-        return _Frozen(alpha, kern, torch.zeros_like(res.flow_w))
+        return _Frozen(alpha, kern, _uniform(res.flow_w, 0.0)[0])
     # The embedding term is trusted only where the pixel looks static: its flow IRLS weight times the ARK
     # probability of "same content" (the sigmoid of cs); otherwise a moving or occluded pixel's codes would
     # pull the geometry just as its flow does.
     static = rob.scale**2 * robust.weight(res.flow_norm, kern, rob.scale)
     same = torch.sigmoid((res.embed.cosine - rob.kappa) / rob.tau)
     return _Frozen(alpha, kern, params.lambda_embed * res.flow_w * res.embed.valid * static * same)
+
+
+def _uniform(like: torch.Tensor, alpha: float) -> tuple[torch.Tensor, robust.Kernel]:
+    """``alpha`` and its kernel as broadcast views of ``like``'s shape (no per-pixel memory)."""
+    one = torch.full((1,) * like.dim(), alpha, dtype=like.dtype, device=like.device)
+    kern = robust.kernel(one, one.dtype, one.device)
+    return one.expand_as(like), robust.Kernel(*(None if t is None else t.expand_as(like) for t in kern))
+
+
+def _sliced_frozen(frozen: _Frozen, edges: slice) -> _Frozen:
+    kern = robust.Kernel(*(None if t is None else t[edges] for t in frozen.kernel))
+    return _Frozen(frozen.alpha[edges], kern, frozen.embed_weight[edges])
 
 
 def _prior_terms(state: BAState, problem: BAProblem, params: BAParams):
@@ -195,8 +235,15 @@ def _energy(res: _Residuals, params: BAParams, frozen: _Frozen) -> float:
 
 
 def _cost(state: BAState, prep: _Prepared, problem: BAProblem, params: BAParams, frozen: _Frozen) -> float:
-    res = _residuals(state, prep, params, with_jac=False)
-    return _energy(res, params, frozen) + _prior_terms(state, problem, params)[2]
+    """The energy at a trial ``state``; in a problem linearised in slices, summed a slice at a time (a trial's
+    residuals are only ever summed)."""
+    n_edges = len(prep.ii)
+    if not _sliced(n_edges, params):
+        energy = _energy(_edge_residuals(state, prep, params, False), params, frozen)
+    else:
+        energy = sum(_energy(_edge_residuals(state, _edges(prep, edges), params, False), params,
+                             _sliced_frozen(frozen, edges)) for edges in _slices(n_edges, params.linearise_edges))
+    return energy + _prior_terms(state, problem, params)[2]
 
 
 def _normal_equations(res: _Residuals, params: BAParams, frozen: _Frozen) -> schur.NormalEquations:
@@ -222,11 +269,9 @@ def _linearised(state: BAState, prep: _Prepared, params: BAParams, frozen: _Froz
     if res.reproj.jac is not None:
         yield slice(0, len(prep.ii)), _normal_equations(res, params, frozen)
         return
-    n_edges, step = len(prep.ii), params.linearise_edges
-    for edges in (slice(start, min(start + step, n_edges)) for start in range(0, n_edges, step)):
-        part = _residuals(state, _edges(prep, edges), params, with_jac=True)
-        kern = robust.Kernel(*(None if t is None else t[edges] for t in frozen.kernel))
-        yield edges, _normal_equations(part, params, _Frozen(frozen.alpha[edges], kern, frozen.embed_weight[edges]))
+    for edges in _slices(len(prep.ii), params.linearise_edges):
+        part = _edge_residuals(state, _edges(prep, edges), params, with_jac=True)
+        yield edges, _normal_equations(part, params, _sliced_frozen(frozen, edges))
 
 
 def _apply(state: BAState, step: schur.Step, params: BAParams,
@@ -309,7 +354,7 @@ def run_ba(state: BAState, problem: BAProblem, params: BAParams,
             break
     edge_w = _edge_weight(res, frozen, params)
     static = _static_weight(res, ark, problem, params, n).view(n, h, w)
-    return BAResult(state, costs, edge_w.view(-1, h, w), static, frozen.alpha.view(-1, h, w))
+    return BAResult(state, costs, edge_w.view(-1, h, w), static, frozen.alpha.reshape(-1, h, w).contiguous())
 
 
 def _edge_weight(res: _Residuals, frozen: _Frozen, params: BAParams) -> torch.Tensor:

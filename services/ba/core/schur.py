@@ -53,11 +53,13 @@ def _expansion(dtype, device) -> torch.Tensor:
     return m
 
 
-CHUNK = 32  # edges (or keyframes) whose float64 per-pixel copies exist at once
+CHUNK = 32  # edges whose float64 per-pixel copies exist at once
+KEYFRAME_CHUNK = 8  # keyframes whose float64 coupling blocks exist at once: each is (7 + 6 * out-degree) x P, 4 MB
+# at 10 out-edges on a 48x64 grid (32 at once were a global BA's peak, +105 MB)
 
 
-def _chunks(n: int) -> list[slice]:
-    return [slice(start, min(start + CHUNK, n)) for start in range(0, n, CHUNK)]
+def _chunks(n: int, size: int = CHUNK) -> list[slice]:
+    return [slice(start, min(start + size, n)) for start in range(0, n, size)]
 
 
 def _edge_slots(ii: torch.Tensor, n_kf: int) -> tuple[torch.Tensor, int]:
@@ -153,7 +155,7 @@ def solve(eq: NormalEquations | Iterable[tuple[slice, NormalEquations]], ii: tor
     inv_dd = 1 / (h_dd * (1 + lm) + disp_eps)
     blocks = torch.empty(n_kf, width, width, dtype=dtype, device=dev)  # (N, D, D)
     reduced_g = torch.empty(n_kf, width, dtype=dtype, device=dev)
-    for chunk in _chunks(n_kf):
+    for chunk in _chunks(n_kf, KEYFRAME_CHUNK):
         coupling64 = coupling[chunk].to(dtype)
         scaled = coupling64 * inv_dd[chunk].to(dtype)[:, None, :]
         blocks[chunk] = torch.bmm(scaled, coupling64.transpose(1, 2))
@@ -174,7 +176,7 @@ def solve(eq: NormalEquations | Iterable[tuple[slice, NormalEquations]], ii: tor
     delta_cam = torch.zeros(n_ext, dtype=dtype, device=dev)
     delta_cam[free_cam] = delta_free
     delta_d = torch.empty(n_kf, n_pix, dtype=dtype, device=dev)
-    for chunk in _chunks(n_kf):
+    for chunk in _chunks(n_kf, KEYFRAME_CHUNK):
         back = torch.bmm(delta_cam[colmap[chunk]][:, None], coupling[chunk].to(dtype))[:, 0]
         delta_d[chunk] = inv_dd[chunk].to(dtype) * (g_d[chunk].to(dtype) - back)
     return Step(delta_cam[: 6 * n_kf].view(n_kf, 6), delta_cam[6 * n_kf], delta_d)

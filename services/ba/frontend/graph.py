@@ -197,8 +197,10 @@ class KeyframeGraph:
         ii = torch.tensor([local[a] for a, _ in pairs], dtype=torch.long, device=dev)
         jj = torch.tensor([local[b] for _, b in pairs], dtype=torch.long, device=dev)
         tg = [self.targets(a, b) for a, b in pairs]
-        targets = torch.stack([t.target for t in tg]).to(dev, torch.float64)
-        conf = torch.stack([t.confidence for t in tg]).to(dev, torch.float64)
+        # as DIS gave them (float32): the solve casts them to its compute dtype, and float64 copies of a global
+        # BA's were 44 MB at 600 edges
+        targets = torch.stack([t.target for t in tg]).to(dev)
+        conf = torch.stack([t.confidence for t in tg]).to(dev)
         codes = None
         if all(self.codes[k] is not None for k in window):
             codes = torch.stack([self.codes[k] for k in window]).to(dev)

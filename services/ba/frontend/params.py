@@ -82,16 +82,16 @@ class FrontendParams:
     relocalise: RelocaliseParams = field(default_factory=RelocaliseParams)
     ba: BAParams = field(default_factory=lambda: BAParams(iterations=3, optimise_focal=True))  # per new keyframe
     global_ba: BAParams = field(default_factory=lambda: BAParams(iterations=10, optimise_focal=True))  # end
-    global_ba_s: float = 0.0  # the end-of-stream BA stops after the iteration that passes this many seconds (0:
-    # runs its iterations): end-of-stream work bounded by time, whatever the window holds
+    global_ba_s: float = 0.0  # the end-of-stream BA stops before an iteration that would end past this many
+    # seconds (refinement.time_bound; 0: runs its iterations): end-of-stream work bounded by time, whatever the window holds
     background_ba_every: int = 10  # a lossless stream's mapping, when idle, runs the end-of-stream BA over every
     # held keyframe once this many keyframes have joined since the last (0: never; Frontend.refine_globally)
-    background_ba_s: float = 3.0  # ... stopping after the iteration that passes this many seconds
+    background_ba_s: float = 3.0  # ... within this many seconds (refinement.time_bound)
     background_ba_keyframes: int = 0  # ... over the newest this many held keyframes (0: every one held): ba's
     # memory peak is this BA, but over the newest 50 KITTI 07 lossless ended at 0.318 m against 0.306 (one run
     # each, the same focal; docs/BENCHMARKS.md)
-    settled_global_ba_s: float = 2.0  # once background BAs ran, the end-of-stream BA stops after the iteration
-    # that passes this many seconds (0: global_ba_s alone bounds it): they gave every held keyframe its iterations
+    settled_global_ba_s: float = 2.0  # once background BAs ran, the end-of-stream BA stays within this many
+    # seconds (0: global_ba_s alone bounds it): they gave every held keyframe its iterations
     # during the stream, so the end only settles the newest (a lossless 2,000-frame room orbit: 24 s otherwise;
     # at 2 s its final ATE is 0.079 m against 0.076 at 5 s, one run each, docs/BENCHMARKS.md)
     realign_focal_change: float = 0.05  # end of stream: frames aligned under a focal this far (relative) from the

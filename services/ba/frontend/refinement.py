@@ -10,10 +10,29 @@ from __future__ import annotations
 
 import logging
 import time
+from typing import Callable
 
 from services.ba.frontend.updates import Update, graph_update, pose_update
 
 logger = logging.getLogger(__name__)
+
+
+def time_bound(bound_s: float, clock: Callable[[], float] = time.monotonic) -> Callable[[], bool] | None:
+    """A solve's ``should_stop`` (asked after every iteration; see ``run_ba``) that keeps it within ``bound_s``
+    seconds from now: True once another iteration, as long as the last one, would end past the bound (None: no
+    bound). Stopping only once the bound had passed overran it by up to an iteration (the 10,000-frame stream's
+    end-of-stream BA: 2.5 s for a 2 s bound)."""
+    if bound_s <= 0:
+        return None
+    began = last = clock()
+
+    def should_stop() -> bool:
+        nonlocal last
+        now = clock()
+        iteration, last = now - last, now
+        return now - began + iteration > bound_s
+
+    return should_stop
 
 
 class Refinement:
@@ -90,14 +109,12 @@ class Refinement:
 
     def _global_ba(self, bound_s: float, keyframes: list[int] | None = None) -> bool:
         """The BA over ``keyframes`` (positions, the oldest the gauge; default every held keyframe) with the global
-        edge set, stopping after the iteration that passes ``bound_s`` seconds (0: all its iterations); False when
-        its result was refused."""
+        edge set, within ``bound_s`` seconds (:func:`time_bound`; 0: all its iterations); False when its result was
+        refused."""
         g = self.graph
         keyframes = list(range(len(g))) if keyframes is None else keyframes
-        began = time.monotonic()
-        should_stop = (lambda: time.monotonic() - began >= bound_s) if bound_s > 0 else None
         return g.run(keyframes, g.pairs(keyframes, self.params.graph.global_radius),
-                     self._ba_params(keyframes, self.params.global_ba), should_stop) is not None
+                     self._ba_params(keyframes, self.params.global_ba), time_bound(bound_s)) is not None
 
     def refine_frame(self) -> Update:
         """Mapping's spare time on a live stream, one frame per call; its revised pose in the update (empty when
