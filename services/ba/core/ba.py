@@ -125,7 +125,7 @@ def _residuals(state: BAState, prep: _Prepared, params: BAParams, with_jac: bool
     if with_jac or not _sliced(len(prep.ii), params):
         return _edge_residuals(state, prep, params, with_jac)
     n_edges, whole = len(prep.ii), None
-    for edges in _slices(n_edges, params.linearise_edges):
+    for edges in _edge_slices(n_edges, params):
         part = _edge_residuals(state, _edges(prep, edges), params, False)
         # every field (E, ...) filled a slice at a time: slices joined by a concatenation would exist twice
         fields = (part.flow, part.flow_norm, part.flow_w, part.reproj.coords, part.reproj.valid,
@@ -140,8 +140,9 @@ def _residuals(state: BAState, prep: _Prepared, params: BAParams, with_jac: bool
                       projective.PlaneReprojection(coords, valid, None, None))
 
 
-def _slices(n_edges: int, step: int) -> Iterator[slice]:
-    return (slice(start, min(start + step, n_edges)) for start in range(0, n_edges, step))
+def _edge_slices(n_edges: int, params: BAParams) -> list[slice]:
+    """The edge slices a problem is linearised and evaluated in: one of every edge unless ``_sliced``."""
+    return schur.chunks(n_edges, params.linearise_edges) if _sliced(n_edges, params) else [slice(0, n_edges)]
 
 
 def _edge_residuals(state: BAState, prep: _Prepared, params: BAParams, with_jac: bool) -> _Residuals:
@@ -192,7 +193,7 @@ def _frozen(res: _Residuals, params: BAParams, ark: ark_codes.ArkCosine | None) 
     else:  # one shape everywhere: its constants formed once and broadcast (views), not ~6 (E, P) tensors
         alpha, kern = _uniform(res.flow_w, rob.fixed_alpha)
     if res.embed is None or params.lambda_embed <= 0:
-        return _Frozen(alpha, kern, _uniform(res.flow_w, 0.0)[0])
+        return _Frozen(alpha, kern, res.flow_w.new_zeros((1,) * res.flow_w.dim()).expand_as(res.flow_w))
     # The embedding term is trusted only where the pixel looks static: its flow IRLS weight times the ARK
     # probability of "same content" (the sigmoid of cs); otherwise a moving or occluded pixel's codes would
     # pull the geometry just as its flow does.
@@ -237,12 +238,8 @@ def _energy(res: _Residuals, params: BAParams, frozen: _Frozen) -> float:
 def _cost(state: BAState, prep: _Prepared, problem: BAProblem, params: BAParams, frozen: _Frozen) -> float:
     """The energy at a trial ``state``; in a problem linearised in slices, summed a slice at a time (a trial's
     residuals are only ever summed)."""
-    n_edges = len(prep.ii)
-    if not _sliced(n_edges, params):
-        energy = _energy(_edge_residuals(state, prep, params, False), params, frozen)
-    else:
-        energy = sum(_energy(_edge_residuals(state, _edges(prep, edges), params, False), params,
-                             _sliced_frozen(frozen, edges)) for edges in _slices(n_edges, params.linearise_edges))
+    energy = sum(_energy(_edge_residuals(state, _edges(prep, edges), params, False), params,
+                         _sliced_frozen(frozen, edges)) for edges in _edge_slices(len(prep.ii), params))
     return energy + _prior_terms(state, problem, params)[2]
 
 
@@ -269,7 +266,7 @@ def _linearised(state: BAState, prep: _Prepared, params: BAParams, frozen: _Froz
     if res.reproj.jac is not None:
         yield slice(0, len(prep.ii)), _normal_equations(res, params, frozen)
         return
-    for edges in _slices(len(prep.ii), params.linearise_edges):
+    for edges in _edge_slices(len(prep.ii), params):
         part = _edge_residuals(state, _edges(prep, edges), params, with_jac=True)
         yield edges, _normal_equations(part, params, _sliced_frozen(frozen, edges))
 

@@ -58,7 +58,8 @@ KEYFRAME_CHUNK = 8  # keyframes whose float64 coupling blocks exist at once: eac
 # at 10 out-edges on a 48x64 grid (32 at once were a global BA's peak, +105 MB)
 
 
-def _chunks(n: int, size: int = CHUNK) -> list[slice]:
+def chunks(n: int, size: int = CHUNK) -> list[slice]:
+    """Consecutive slices of ``size`` covering ``range(n)`` (the last may be shorter)."""
     return [slice(start, min(start + size, n)) for start in range(0, n, size)]
 
 
@@ -87,7 +88,7 @@ def _add_edges(eq: NormalEquations, ii: torch.Tensor, jj: torch.Tensor, slot: to
     # of every reduction are promoted to the camera dtype first (tests/test_schur_conditioning.py)
     h_77 = torch.empty(n_edges, 7, 7, dtype=dtype, device=dev)
     g_7 = torch.empty(n_edges, 7, dtype=dtype, device=dev)
-    for chunk in _chunks(n_edges):  # the float64 copies of a few edges at a time: a global BA's are GBs at once
+    for chunk in chunks(n_edges):  # the float64 copies of a few edges at a time: a global BA's are GBs at once
         flat_j = eq.j_cam[chunk].reshape(-1, 7, n_res * n_pix).to(dtype)
         h_77[chunk] = torch.bmm(flat_j * eq.weight[chunk].reshape(len(flat_j), 1, -1).to(dtype), flat_j.transpose(1, 2))
         g_7[chunk] = torch.bmm(flat_j, wr[chunk].reshape(len(flat_j), -1, 1).to(dtype))[..., 0]
@@ -155,7 +156,7 @@ def solve(eq: NormalEquations | Iterable[tuple[slice, NormalEquations]], ii: tor
     inv_dd = 1 / (h_dd * (1 + lm) + disp_eps)
     blocks = torch.empty(n_kf, width, width, dtype=dtype, device=dev)  # (N, D, D)
     reduced_g = torch.empty(n_kf, width, dtype=dtype, device=dev)
-    for chunk in _chunks(n_kf, KEYFRAME_CHUNK):
+    for chunk in chunks(n_kf, KEYFRAME_CHUNK):
         coupling64 = coupling[chunk].to(dtype)
         scaled = coupling64 * inv_dd[chunk].to(dtype)[:, None, :]
         blocks[chunk] = torch.bmm(scaled, coupling64.transpose(1, 2))
@@ -176,7 +177,7 @@ def solve(eq: NormalEquations | Iterable[tuple[slice, NormalEquations]], ii: tor
     delta_cam = torch.zeros(n_ext, dtype=dtype, device=dev)
     delta_cam[free_cam] = delta_free
     delta_d = torch.empty(n_kf, n_pix, dtype=dtype, device=dev)
-    for chunk in _chunks(n_kf, KEYFRAME_CHUNK):
+    for chunk in chunks(n_kf, KEYFRAME_CHUNK):
         back = torch.bmm(delta_cam[colmap[chunk]][:, None], coupling[chunk].to(dtype))[:, 0]
         delta_d[chunk] = inv_dd[chunk].to(dtype) * (g_d[chunk].to(dtype) - back)
     return Step(delta_cam[: 6 * n_kf].view(n_kf, 6), delta_cam[6 * n_kf], delta_d)
