@@ -29,6 +29,13 @@ def test_onnx_backbone_gives_384d_patch_maps_at_any_size(onnx_backbone):
         assert torch.isfinite(out).all()
 
 
+def test_onnx_threads_sleep_between_operators_unless_asked_to_spin(onnx_backbone):
+    entry = "session.intra_op.allow_spinning"
+    assert onnx_backbone.session.get_session_options().get_session_config_entry(entry) == "0"
+    spinning = load_backbone(NAME, ModelStore(use_hf_cache=False), "cpu", runtime="onnx", threads=2, spinning=True)
+    assert spinning.session.get_session_options().get_session_config_entry(entry) == "1"
+
+
 def test_torch_conversion_matches_onnx(onnx_backbone):
     torch_bb = load_backbone(NAME, ModelStore(use_hf_cache=False), "cpu", runtime="torch")
     torch.manual_seed(0)

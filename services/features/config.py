@@ -59,6 +59,10 @@ class FeaturesSettings(KmVipeSettings):
     """bf16/fp16 backbone on CUDA."""
     threads: int = 2
     """CPU threads for torch and onnxruntime (2 on the reference machine)."""
+    runtime_spinning: bool = False
+    """onnxruntime's threads spin between operators instead of sleeping: a little lower latency on cores nothing
+    else needs; on a shared CPU they take it from tracking and mapping (KITTI 07's keyframes next to one busy
+    process: 36-41 CPU-s spinning, 27-31 not; docs/BENCHMARKS.md, "Threads that sleep")."""
     credit_window: int = 4
     """Frames ingest may send beyond the last one processed (lossless mode)."""
     codes_backlog: int = 3
