@@ -322,8 +322,13 @@ def test_over_zenoh_codes_on_their_key_and_progress_reports(tmp_path, unix_endpo
             next_report(g.seq)
             bus.publish(keys.topic(STREAM, keys.GRAPH), graph)
         wait_until(lambda: int(graphs[-1].seq) in dict(state.map.poses), ACK_S, "the graphs")
-        stats = decode(bus.request(keys.map_key(STREAM, "stats"), timeout=2.0), MapStats)
-        assert stats.keyframes_without_codes == 3 and stats.points > 100
+
+        def stats() -> MapStats:
+            return decode(bus.request(keys.map_key(STREAM, "stats"), timeout=2.0), MapStats)
+
+        # committed at once, fused within refresh_period_s
+        wait_until(lambda: stats().points > 100, state.cfg.refresh_period_s + ACK_S, "the graphs to be fused")
+        assert stats().keyframes_without_codes == 3
         for c in codes:
             bus.publish(keys.topic(STREAM, keys.CODES), c)
         wait_until(lambda: all(state.has_codes(c.seq) for c in codes), ACK_S, "the codes to be fused")

@@ -18,7 +18,7 @@ from services.mapstore import queries
 from services.mapstore.config import MapstoreSettings
 from services.mapstore.colmap import ColmapParams, read_colmap
 from services.mapstore.export import read_ply
-from services.mapstore.service import handle
+from services.mapstore.service import RefreshPace, handle
 from services.mapstore.state import MapState
 
 synth = pytest.importorskip("services.synth")
@@ -224,6 +224,42 @@ def test_a_batch_commits_each_message_and_fuses_once_to_the_same_map(tmp_path):
     np.testing.assert_allclose(a.codes, b.codes, atol=1e-5)
     one.close()
     batched.close()
+
+
+def test_batches_that_wait_are_fused_later_in_one_refresh_to_the_same_map(tmp_path):
+    msgs = [m for m in stream_messages(6) if not isinstance(m, Eos)]
+    one = MapState(settings(tmp_path / "one"))
+    for msg in msgs:
+        handle(one, msg, one.cfg)
+    paced = MapState(settings(tmp_path / "paced"))
+    for half in (msgs[: len(msgs) // 2], msgs[len(msgs) // 2:]):
+        with paced.batch(refresh=False):
+            for msg in half:
+                handle(paced, msg, paced.cfg)
+        assert paced.map.fused().keys.size == 0  # waiting for the refresh ...
+    assert len(paced.store.load().contents) == 6  # ... every keyframe committed
+    assert paced.refresh() == 6 and paced.refresh() == 0  # once, then nothing is left to do
+    a, b = one.map.fused(), paced.map.fused()
+    np.testing.assert_array_equal(a.keys, b.keys)
+    np.testing.assert_allclose(a.xyz, b.xyz, atol=1e-9)
+    np.testing.assert_allclose(a.codes, b.codes, atol=1e-5)
+    assert paced.metric == one.metric
+    one.close()
+    paced.close()
+
+
+def test_the_loop_refreshes_at_most_once_per_period():
+    now = [0.0]
+    pace = RefreshPace(2.0, clock=lambda: now[0])
+    assert not pace.due()  # the period starts with the loop
+    now[0] = 2.0
+    assert pace.due() and not pace.due()  # due once, then the period starts again
+    now[0] = 3.9
+    assert not pace.due()
+    now[0] = 4.0
+    assert pace.due()
+    always = RefreshPace(0.0, clock=lambda: now[0])
+    assert always.due() and always.due()  # 0: after every batch
 
 
 def test_the_map_is_exported_on_the_final_graph_before_bas_end_of_stream(tmp_path, unix_endpoint):

@@ -20,6 +20,7 @@ import logging
 import threading
 import time
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -117,6 +118,7 @@ def export_final(state: MapState, cfg: MapstoreSettings) -> None:
     """ba's final graph is in and the stream complete: the export, before ba's EOS (ba solves its frames again
     meanwhile; the export needs only the keyframes). Its seconds go into this stage's EOS."""
     began = time.monotonic()
+    state.refresh()  # the final graph and the last codes may wait for their re-fusion (refresh_period_s)
     try:
         if cfg.export_dir:
             export_state(state, Path(cfg.export_dir))
@@ -226,6 +228,24 @@ def _wanted_version(state: MapState, msg: Message) -> int | None:
     return None
 
 
+class RefreshPace:
+    """When the service loop re-fuses what changed: once ``period_s`` has passed since it last did (0: after every
+    batch of messages). Every graph update moves the keyframes of ba's window, and re-fusing them after each one
+    took the mapstore about a third of the machine on a lossless KITTI 07 run (docs/BENCHMARKS.md)."""
+
+    def __init__(self, period_s: float, clock: Callable[[], float] = time.monotonic):
+        self.period_s, self._clock = period_s, clock
+        self._last = clock()
+
+    def due(self) -> bool:
+        """True (and the period starts again) when a re-fusion is due."""
+        now = self._clock()
+        if self.period_s > 0 and now - self._last < self.period_s:
+            return False
+        self._last = now
+        return True
+
+
 def run(cfg: MapstoreSettings, bus: Bus, stop: threading.Event, state: MapState | None = None,
         fetch: BasisFetch | None = None) -> MapState:
     """Serve the map of `cfg.stream` until `stop` is set. ``fetch``: the missing-basis requests (counts)."""
@@ -247,12 +267,13 @@ def run(cfg: MapstoreSettings, bus: Bus, stop: threading.Event, state: MapState 
     log.info("mapstore serving", extra={"stream": cfg.stream})
     last_report = 0.0
     release = MemoryRelease(cfg.release_memory_period_s)
+    refresh = RefreshPace(cfg.refresh_period_s)
     carried = None  # a message of another session that ended a batch: the first of the next one
     while not stop.is_set():
         delivery, carried = carried or inbox.get(min(POLL_S, PROGRESS_S)), None
         if delivery is not None:
             state = state.for_session(delivery.msg.session)  # the queryable's closure follows the rebinding
-            with state.batch():
+            with state.batch(refresh=refresh.due()):
                 for n in range(cfg.refresh_batch):
                     if n and (delivery := inbox.get(0)) is None:
                         break
@@ -268,6 +289,8 @@ def run(cfg: MapstoreSettings, bus: Bus, stop: threading.Event, state: MapState 
                         bus.publish(*progress_report(state, cfg, consumer))
                         last_report = time.monotonic()
             release.maybe()  # between batches: the re-fusion's arrays are freed
+        if refresh.due() and state.refresh():  # what the batches since the last re-fusion changed
+            release.maybe()
         if time.monotonic() - last_report >= PROGRESS_S:  # heartbeat: the next one repeats it, no need to block
             bus.publish(*progress_report(state, cfg, consumer), drop_if_congested=True)
             last_report = time.monotonic()

@@ -107,6 +107,7 @@ class MapState:
         self._index: tuple[int, int, ScoringIndex] | None = None  # (map revision, basis version, index)
         self.answers = AnswerCache(cfg.answer_cache)  # findings of recent queries on that index
         self._deferred: bool | None = None  # None outside batch(); inside, the metric flag of the last write
+        self._unfused: bool | None = None  # a batch left its changes unfused: the metric flag they carry
         # end of stream: ba's EOS is held until its final graph has been applied (or eos_wait_s passed)
         self.final_keyframes: set[int] | None = None
         self.pending_eos = None
@@ -285,17 +286,29 @@ class MapState:
             return self._refresh(metric)
 
     @contextmanager
-    def batch(self) -> Iterator[None]:
+    def batch(self, refresh: bool = True) -> Iterator[None]:
         """Writes inside are committed one by one as always, but re-fused once at the end: a burst of graph
-        updates or bases costs one re-fusion of what changed, not one per message."""
+        updates or bases costs one re-fusion of what changed, not one per message. ``refresh`` False: not even
+        then; what changed waits for the next batch that re-fuses, or :meth:`refresh`."""
         with self.lock:
-            self._deferred = self.metric
+            self._deferred = self._unfused if self._unfused is not None else self.metric
         try:
             yield
         finally:
             with self.lock:
                 metric, self._deferred = self._deferred, None
-                self._refresh(metric)
+                if refresh:
+                    self._unfused = None
+                    self._refresh(metric)
+                else:
+                    self._unfused = metric
+
+    def refresh(self) -> int:
+        """Re-fuse what batches left waiting (:meth:`batch`); the number of keyframes re-fused."""
+        with self.lock:
+            metric = self._unfused if self._unfused is not None else self.metric
+            self._unfused = None
+            return self._refresh(metric)
 
     def _refresh(self, metric: bool) -> int:
         """Re-fuse what changed (lock held); persist the voxel size once known. Returns keyframes re-fused (0
