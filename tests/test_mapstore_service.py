@@ -248,6 +248,20 @@ def test_batches_that_wait_are_fused_later_in_one_refresh_to_the_same_map(tmp_pa
     paced.close()
 
 
+def test_a_query_answers_on_what_is_committed_but_not_re_fused_yet(tmp_path):
+    from services.common.schema import MapStats
+
+    state = MapState(settings(tmp_path))
+    with state.batch(refresh=False):
+        for msg in [m for m in stream_messages(4) if not isinstance(m, Eos)]:
+            handle(state, msg, state.cfg)
+    assert state.map.fused().keys.size == 0
+    answered = decode(queries.answer(state, "cam0", "kmvipe/cam0/map/stats", {}, None), MapStats)
+    assert answered.keyframes == 4 and answered.points == state.map.fused().keys.size > 0
+    assert state.refresh() == 0  # nothing waits any more
+    state.close()
+
+
 def test_the_loop_refreshes_at_most_once_per_period():
     now = [0.0]
     pace = RefreshPace(2.0, clock=lambda: now[0])

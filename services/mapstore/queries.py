@@ -131,10 +131,15 @@ def stats(state: MapState, stream: str) -> MapStats:
                     keyframes_without_codes=state.without_codes_count(), session=state.session)
 
 
+FUSED_MAP_VERBS = ("query", "segment", "export", "stats", "example")  # answered from the fused map
+
+
 def answer(state: MapState, stream: str, key: str, params: dict, payload: bytes | None) -> bytes:
     """Dispatch one query on ``.../map/<verb>`` (the ``Bus.serve`` handler); errors become error replies."""
     verb = key.rsplit("/", 1)[-1]
     with state.lock:
+        if verb in FUSED_MAP_VERBS:  # committed but not re-fused yet (refresh_period_s): answered on it too
+            state.refresh()
         if verb in ("query", "segment"):
             q = decode(payload or b"", MapQuery)
             return (query(state, q) if verb == "query" else segment(state, q)).encode()

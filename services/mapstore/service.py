@@ -304,5 +304,6 @@ def run(cfg: MapstoreSettings, bus: Bus, stop: threading.Event, state: MapState 
             for key, out in _guarded(finish_stream, state, held, cfg):
                 bus.publish(key, out)
     state.pose_log.flush(state.store)
+    state.refresh()  # the map handed back holds everything committed
     archives.close()
     return state

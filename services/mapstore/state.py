@@ -304,10 +304,11 @@ class MapState:
                     self._unfused = metric
 
     def refresh(self) -> int:
-        """Re-fuse what batches left waiting (:meth:`batch`); the number of keyframes re-fused."""
+        """Re-fuse what batches left waiting (:meth:`batch`), if anything; the number of keyframes re-fused."""
         with self.lock:
-            metric = self._unfused if self._unfused is not None else self.metric
-            self._unfused = None
+            if self._unfused is None:
+                return 0
+            metric, self._unfused = self._unfused, None
             return self._refresh(metric)
 
     def _refresh(self, metric: bool) -> int:
