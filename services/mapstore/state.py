@@ -22,7 +22,8 @@ Flat memory: each ba graph lists the keyframes ba still holds; a keyframe older 
 does not list has left ba's graph for good (ba keeps its newest ``keep_keyframes`` and sometimes drops a
 redundant one from the middle). Such a keyframe is *settled* once its codes are in (or it came from a real-time
 stream, whose codes may never come) and no codes wait for its basis; after every re-fusion the oldest settled
-keyframes whose carving window is settled too are folded (`KeyframeMap.fold`): recorded in the store's
+keyframes whose carving window is settled too are folded (`KeyframeMap.fold`; the policy is
+services/mapstore/folding_policy.py): recorded in the store's
 ``folded`` table first, then their sums frozen and their arrays dropped. Graph updates, repeats and codes for a
 folded keyframe stay out of the map (codes are still committed). Beyond ``max_live_keyframes`` held, keyframes
 that have left ba's graph are folded even without their codes. A restart streams the store in id order
@@ -47,6 +48,7 @@ from services.mapstore.core.keyframe import KeyframeContent, KeyframeDepth
 from services.mapstore.core.map import KeyframeMap, code_maps_to_latest
 from services.mapstore.core.scoring import PcaBasis
 from services.mapstore.export import FoldedExports
+from services.mapstore.folding_policy import FoldingPolicy
 from services.mapstore.poselog import PoseLog
 from services.mapstore.sessions import archive_other_session
 from services.mapstore.store import MapStore, Thumbnail
@@ -70,7 +72,7 @@ def make_thumbnail(image: np.ndarray, side: int, quality: int) -> Thumbnail | No
     return Thumbnail(buf.tobytes(), size[0], size[1]) if ok else None
 
 
-class MapState:
+class MapState(FoldingPolicy):
     """Store + map + the scoring index of the latest map revision. Methods are thread-safe."""
 
     def __init__(self, cfg: MapstoreSettings, session: str | None = None) -> None:
@@ -329,59 +331,6 @@ class MapState:
             self.store.set_meta(meta)
         self._fold()
         return len(report.refreshed)
-
-    # ----- folding --------------------------------------------------------------------------------
-    def _retired(self, kf_id: int) -> bool:
-        """Whether keyframe ``kf_id`` has left ba's graph for good (older than its newest, not in it)."""
-        return self._graph_max is not None and kf_id < self._graph_max and kf_id not in self._graph_seqs
-
-    def _settled(self, kf_id: int) -> bool:
-        """Nothing will change keyframe ``kf_id`` any more: it has left ba's graph, and its codes are in the map
-        (with their basis) or not expected (a real-time stream's); a graph's keyframe that never came counts."""
-        if not self._retired(kf_id):
-            return False
-        content = self.map.contents.get(kf_id)
-        if content is None:  # never came (keyframes come in order: later ones are in), codes waiting for it moot
-            return True
-        if kf_id in self.waiting_codes:  # its codes wait for their basis
-            return False
-        return content.pca_version in self.bases if content.has_codes else kf_id in self.realtime
-
-    def _fold(self) -> None:
-        """Fold the keyframes that can be (lock held, map refreshed): recorded first, then frozen and dropped."""
-        if not self.cfg.fold_keyframes or self._graph_max is None:
-            return
-        ids = self.map.foldable(self._settled)
-        forced = False
-        if not ids:
-            excess = len(self.map.live) - self.cfg.max_live_keyframes
-            if excess > 0:
-                ids, forced = self.map.foldable(self._retired)[:excess], True
-        if not ids:
-            return
-        modes = [(k, self.map.fold_mode(k)) for k in ids]
-        self.store.put_folded(modes)
-        self.export_folded(ids)
-        self.map.fold(ids)
-        for kf_id in ids:
-            self.intrinsics.pop(kf_id, None)
-            self.realtime.discard(kf_id)
-            self.waiting_codes.pop(kf_id, None)
-        if forced:
-            log.warning("keyframes folded before their codes came (max_live_keyframes reached)",
-                        extra={"stream": self.cfg.stream, "seq": ids[-1], "folded": len(ids),
-                               "without_codes": sum(m < 2 for _, m in modes)})
-        log.debug("keyframes folded", extra={"stream": self.cfg.stream, "seq": ids[-1], "folded": len(ids),
-                                             "live": len(self.map.live)})
-
-    def export_folded(self, ids: list[int]) -> None:
-        """Depth maps and images of keyframes about to fold into ``export_dir`` (:class:`FoldedExports`)."""
-        if self.folded_exports.out is None:
-            return
-        for kf_id in ids:
-            depth, pose = self.map.depths.get(kf_id), self.map.poses.get(kf_id)
-            if depth is not None and pose is not None:
-                self.folded_exports.write(kf_id, depth, pose, lambda k=kf_id: self.store.image(k), self.metric)
 
     # ----- reads ----------------------------------------------------------------------------------
     def committed_seq(self) -> int:
