@@ -196,17 +196,19 @@ def read_rgb(path: Path) -> np.ndarray:
 class Features:
     """The real backbone, run the two ways the product runs it, with an optional on-disk cache."""
 
-    def __init__(self, threads: int, scales: tuple[float, ...], cache: Path | None):
-        self.threads, self.scales, self.cache, self._bb = threads, scales, cache, None
+    def __init__(self, threads: int, scales: tuple[float, ...], cache: Path | None, int8_map: bool = False):
+        self.threads, self.scales, self.cache, self.int8_map = threads, scales, cache, int8_map
+        self._bbs: dict[bool, object] = {}
 
-    def backbone(self):
-        if self._bb is None:
+    def backbone(self, int8: bool = False):
+        """float32 as the gateway runs it; ``int8``: as features runs it with ``runtime_int8``."""
+        if int8 not in self._bbs:
             from services.common.models import ModelStore
             from services.common.models.loaders import load_backbone
 
-            self._bb = load_backbone(BACKBONE, ModelStore(use_hf_cache=False), "cpu", runtime="onnx",
-                                     threads=self.threads)
-        return self._bb
+            self._bbs[int8] = load_backbone(BACKBONE, ModelStore(use_hf_cache=False), "cpu", runtime="onnx",
+                                            threads=self.threads, int8=int8)
+        return self._bbs[int8]
 
     def _cached(self, key: str, make: Callable[[], torch.Tensor]) -> torch.Tensor:
         if self.cache is None:
@@ -220,8 +222,9 @@ class Features:
         """(C, h, w) as the features service computes a keyframe's (working size, pyramid, 1/8 grid)."""
         work = resize_to_working(image, working_size(*image.shape[:2]))
         scales = "_".join(f"{s:g}" for s in self.scales)
-        return self._cached(f"{key}_map_{work.shape[0]}x{work.shape[1]}_s{scales}", lambda: multiscale_features(
-            normalise_rgb(work), self.backbone(), PyramidParams(scales=self.scales)).features.float())
+        name = f"{key}_map_{work.shape[0]}x{work.shape[1]}_s{scales}" + ("_int8" if self.int8_map else "")
+        return self._cached(name, lambda: multiscale_features(
+            normalise_rgb(work), self.backbone(self.int8_map), PyramidParams(scales=self.scales)).features.float())
 
     def query_features(self, key: str, image: np.ndarray) -> torch.Tensor:
         """(C, h, w) as the gateway computes an example image's (``fit_to_patches``, one backbone pass)."""
@@ -370,11 +373,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache", type=Path, default=Path(os.environ.get("TMPDIR", "/tmp")) / "kmvipe_query_example",
                     help="feature cache folder (default %(default)s); --no-cache to recompute")
     ap.add_argument("--no-cache", action="store_true")
+    ap.add_argument("--int8", action="store_true", help="the map's features from int8 weights (features' "
+                    "runtime_int8); queries stay float32, as the gateway makes them")
     ap.add_argument("--json", type=Path, help="also write every query's result and the tables here")
     args = ap.parse_args(argv)
     args.data, args.boxes = args.data.expanduser().resolve(), args.boxes.expanduser().resolve()
     torch.set_num_threads(args.threads)
-    feats = Features(args.threads, tuple(args.scales), None if args.no_cache else args.cache)
+    feats = Features(args.threads, tuple(args.scales), None if args.no_cache else args.cache, args.int8)
     results = [run_dataset(n, args, feats) for n in (("adt", "kitti") if args.dataset == "both" else (args.dataset,))]
     for res in results:
         print(f"\n## {res['dataset']}: {len(res['frames'])} frames, grid {res['grid']}, {res['evaluated']} queries "

@@ -59,6 +59,10 @@ class FeaturesSettings(KmVipeSettings):
     """bf16/fp16 backbone on CUDA."""
     threads: int = 2
     """CPU threads for torch and onnxruntime (2 on the reference machine)."""
+    runtime_int8: bool = True
+    """onnxruntime (the CPU runtime) runs the backbone on int8 weights: 0.145 s per KITTI 07 keyframe against 0.214
+    on this CPU (AVX-512 VNNI), features 60 -> 48 CPU-s of a lossless run, query-by-example retrieval on ADT and
+    KITTI the same (docs/BENCHMARKS.md, "Threads that sleep"). The torch runtime (CUDA: bf16) ignores it."""
     runtime_spinning: bool = False
     """onnxruntime's threads spin between operators instead of sleeping: a little lower latency on cores nothing
     else needs; on a shared CPU they take it from tracking and mapping (KITTI 07's keyframes next to one busy

