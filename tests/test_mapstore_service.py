@@ -207,30 +207,37 @@ def test_a_diverged_pose_leaves_its_camera_out_of_the_export_not_the_export(tmp_
     state.close()
 
 
-def test_a_batch_commits_each_message_and_fuses_once_to_the_same_map(tmp_path):
+def fused_one_by_one(tmp_path: Path) -> tuple[list, MapState]:
+    """Six keyframes' messages, and the map they make re-fused after each one."""
     msgs = [m for m in stream_messages(6) if not isinstance(m, Eos)]
     one = MapState(settings(tmp_path / "one"))
     for msg in msgs:
         handle(one, msg, one.cfg)
+    return msgs, one
+
+
+def assert_same_fused_map(a: MapState, b: MapState) -> None:
+    fa, fb = a.map.fused(), b.map.fused()
+    np.testing.assert_array_equal(fa.keys, fb.keys)
+    np.testing.assert_allclose(fa.xyz, fb.xyz, atol=1e-9)
+    np.testing.assert_allclose(fa.codes, fb.codes, atol=1e-5)
+
+
+def test_a_batch_commits_each_message_and_fuses_once_to_the_same_map(tmp_path):
+    msgs, one = fused_one_by_one(tmp_path)
     batched = MapState(settings(tmp_path / "batched"))
     with batched.batch():
         for msg in msgs:
             handle(batched, msg, batched.cfg)
         assert batched.map.fused().keys.size == 0  # nothing re-fused inside the batch ...
         assert len(batched.store.load().contents) == 6  # ... but every keyframe is committed
-    a, b = one.map.fused(), batched.map.fused()
-    np.testing.assert_array_equal(a.keys, b.keys)
-    np.testing.assert_allclose(a.xyz, b.xyz, atol=1e-9)
-    np.testing.assert_allclose(a.codes, b.codes, atol=1e-5)
+    assert_same_fused_map(one, batched)
     one.close()
     batched.close()
 
 
 def test_batches_that_wait_are_fused_later_in_one_refresh_to_the_same_map(tmp_path):
-    msgs = [m for m in stream_messages(6) if not isinstance(m, Eos)]
-    one = MapState(settings(tmp_path / "one"))
-    for msg in msgs:
-        handle(one, msg, one.cfg)
+    msgs, one = fused_one_by_one(tmp_path)
     paced = MapState(settings(tmp_path / "paced"))
     for half in (msgs[: len(msgs) // 2], msgs[len(msgs) // 2:]):
         with paced.batch(refresh=False):
@@ -239,10 +246,7 @@ def test_batches_that_wait_are_fused_later_in_one_refresh_to_the_same_map(tmp_pa
         assert paced.map.fused().keys.size == 0  # waiting for the refresh ...
     assert len(paced.store.load().contents) == 6  # ... every keyframe committed
     assert paced.refresh() == 6 and paced.refresh() == 0  # once, then nothing is left to do
-    a, b = one.map.fused(), paced.map.fused()
-    np.testing.assert_array_equal(a.keys, b.keys)
-    np.testing.assert_allclose(a.xyz, b.xyz, atol=1e-9)
-    np.testing.assert_allclose(a.codes, b.codes, atol=1e-5)
+    assert_same_fused_map(one, paced)
     assert paced.metric == one.metric
     one.close()
     paced.close()
