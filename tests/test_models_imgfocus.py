@@ -47,6 +47,19 @@ def test_int8_weights_give_the_same_maps_within_quantisation(onnx_backbone):
     assert (a - b).abs().max() > 1e-3
 
 
+def test_int8_weights_that_cannot_be_made_leave_float32_weights_and_a_warning(onnx_backbone, monkeypatch, tmp_path,
+                                                                             caplog):
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "gone"))  # the quantiser's files cannot be written
+    with caplog.at_level("WARNING"):
+        fallback = load_backbone(NAME, ModelStore(use_hf_cache=False), "cpu", runtime="onnx", threads=2, int8=True)
+    warned = [r for r in caplog.records if "float32 weights" in r.getMessage()]
+    assert warned and "gone" in warned[0].error  # says why
+    x = torch.randn(1, 3, 56, 70)
+    assert torch.equal(fallback(x), onnx_backbone(x))
+
+
 def test_torch_conversion_matches_onnx(onnx_backbone):
     torch_bb = load_backbone(NAME, ModelStore(use_hf_cache=False), "cpu", runtime="torch")
     torch.manual_seed(0)

@@ -97,11 +97,22 @@ def _imgfocus_onnx(proto, entry: ModelEntry, threads: int, spinning: bool = Fals
     opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if spinning else "0")
     try:
         graph = imgfocus.backbone_onnx_model(proto)
-        model = imgfocus.int8_weights(graph) if int8 else graph.SerializeToString()
-        session = ort.InferenceSession(model, opts, providers=["CPUExecutionProvider"])
+        session = ort.InferenceSession(_weights(graph, entry, int8), opts, providers=["CPUExecutionProvider"])
     except Exception as exc:  # noqa: BLE001
         raise ModelError(f"model '{entry.name}': onnxruntime cannot run it ({exc})") from exc
     return OnnxDinoBackbone(session, entry.name, entry.output_space, entry.output_dim, entry.patch_size)
+
+
+def _weights(graph, entry: ModelEntry, int8: bool) -> bytes:
+    """The serialised graph, on int8 weights when asked and the quantiser can make them; else float32 (a warning
+    that says why: the quantiser writes to the temporary folder, which may be read-only)."""
+    if int8:
+        try:
+            return imgfocus.int8_weights(graph)
+        except Exception as exc:  # noqa: BLE001  (onnxruntime's quantiser raises what its steps raise)
+            log.warning("int8 weights could not be made; the backbone runs on float32 weights",
+                        extra={"model": entry.name, "error": f"{type(exc).__name__}: {exc}"})
+    return graph.SerializeToString()
 
 
 def _imgfocus_torch(proto, entry: ModelEntry, dev: torch.device, dtype: torch.dtype) -> TorchDinoBackbone:
