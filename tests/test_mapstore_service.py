@@ -13,12 +13,13 @@ import numpy as np
 import pytest
 
 from services.common.errors import DecodeError
+from services.common.lifecycle import Period
 from services.common.schema import Eos, Graph, Keyframe, MapQuery, PcaBasis as PcaMessage, decode
 from services.mapstore import queries
 from services.mapstore.config import MapstoreSettings
 from services.mapstore.colmap import ColmapParams, read_colmap
 from services.mapstore.export import read_ply
-from services.mapstore.service import RefreshPace, handle
+from services.mapstore.service import handle
 from services.mapstore.state import MapState
 
 synth = pytest.importorskip("services.synth")
@@ -268,7 +269,7 @@ def test_a_query_answers_on_what_is_committed_but_not_re_fused_yet(tmp_path):
 
 def test_the_loop_refreshes_at_most_once_per_period():
     now = [0.0]
-    pace = RefreshPace(2.0, clock=lambda: now[0])
+    pace = Period(2.0, clock=lambda: now[0])
     assert not pace.due()  # the period starts with the loop
     now[0] = 2.0
     assert pace.due() and not pace.due()  # due once, then the period starts again
@@ -276,7 +277,7 @@ def test_the_loop_refreshes_at_most_once_per_period():
     assert not pace.due()
     now[0] = 4.0
     assert pace.due()
-    always = RefreshPace(0.0, clock=lambda: now[0])
+    always = Period(0.0, clock=lambda: now[0])
     assert always.due() and always.due()  # 0: after every batch
 
 

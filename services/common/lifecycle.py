@@ -81,29 +81,51 @@ def release_free_memory() -> bool:
     return bool(libc.malloc_trim(0))
 
 
+class Period:
+    """A loop's work done at most once per ``period_s`` (0: every time): :meth:`due` says whether the period has
+    passed since the work was last due (or :meth:`restart`), and starts it again when it has."""
+
+    def __init__(self, period_s: float, clock=None):
+        self.period_s = period_s
+        self._clock = clock or time.monotonic
+        self._last = self._clock()
+
+    def due(self) -> bool:
+        now = self._clock()
+        if self.period_s > 0 and now - self._last < self.period_s:
+            return False
+        self._last = now
+        return True
+
+    def restart(self) -> None:
+        self._last = self._clock()
+
+
 class MemoryRelease:
     """When a long-running loop calls :func:`release_free_memory`: at most once per ``period_s`` (0: never), at a
     point the caller chooses (between two units of work)."""
 
     def __init__(self, period_s: float, clock=None):
         self.period_s = period_s
-        self._clock = clock or time.monotonic
-        self._last = self._clock()
+        self._period = Period(period_s, clock)
         self.count = 0
 
     def maybe(self) -> bool:
         """Release now if the period has passed since the last release; True when it ran."""
-        if self.period_s <= 0 or self._clock() - self._last < self.period_s:
+        if self.period_s <= 0 or not self._period.due():
             return False
-        self.now()
+        self._release()
         return True
 
     def now(self) -> None:
         """Release now (after a burst the caller knows of, e.g. a stream's end), unless releases are off."""
         if self.period_s <= 0:
             return
+        self._period.restart()
+        self._release()
+
+    def _release(self) -> None:
         release_free_memory()
-        self._last = self._clock()
         self.count += 1
 
 

@@ -96,11 +96,6 @@ class CarvingParams:
 class FusionParams:
     """Voxel fusion of keyframe points."""
 
-    refresh_period_s: float = Field(2.0, ge=0)
-    """What the messages change is committed at once but re-fused at most once per this many seconds (0: after
-    every batch): each graph update moves the keyframes of ba's window again, so re-fusing fewer times does the
-    same work fewer times. Queries see the map as of the last re-fusion; the end of stream re-fuses before it
-    exports. KITTI 07 lossless: docs/BENCHMARKS.md, "Threads that sleep, a map re-fused every 2 s"."""
     voxel_size: float = 0.02
     """Voxel edge: metres when `voxel_mode` is "absolute", else a fraction of the median depth."""
     voxel_mode: Literal["absolute", "relative"] = "relative"
@@ -170,8 +165,8 @@ class MapstoreSettings(KmVipeSettings):
     refresh_period_s: float = Field(2.0, ge=0)
     """What the messages change is committed at once but re-fused at most once per this many seconds (0: after
     every batch): each graph update moves the keyframes of ba's window again, so re-fusing fewer times does the
-    same work fewer times. Queries see the map as of the last re-fusion; the end of stream re-fuses before it
-    exports. KITTI 07 lossless: docs/BENCHMARKS.md, "Threads that sleep, a map re-fused every 2 s"."""
+    same work fewer times. A query re-fuses what waits before it answers, and so does the export at the end
+    of stream. KITTI 07 lossless: docs/BENCHMARKS.md, "Threads that sleep, a map re-fused every 2 s"."""
     voxel_size: float = 0.02
     """Voxel edge: metres when voxel_mode is absolute, else a fraction of the median depth."""
     voxel_mode: Literal["absolute", "relative"] = "relative"

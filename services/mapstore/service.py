@@ -20,14 +20,13 @@ import logging
 import threading
 import time
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
 from services.common import keys
 from services.common.bus import Bus
 from services.common.errors import DecodeError, ServiceTimeout
-from services.common.lifecycle import MemoryRelease, nice_this_thread
+from services.common.lifecycle import MemoryRelease, Period, nice_this_thread
 from services.common.pca_fetch import BasisFetch
 from services.common.restarts import consumer_name
 from services.common.streams import session_of
@@ -228,24 +227,6 @@ def _wanted_version(state: MapState, msg: Message) -> int | None:
     return None
 
 
-class RefreshPace:
-    """When the service loop re-fuses what changed: once ``period_s`` has passed since it last did (0: after every
-    batch of messages). Every graph update moves the keyframes of ba's window, and re-fusing them after each one
-    took the mapstore about a third of the machine on a lossless KITTI 07 run (docs/BENCHMARKS.md)."""
-
-    def __init__(self, period_s: float, clock: Callable[[], float] = time.monotonic):
-        self.period_s, self._clock = period_s, clock
-        self._last = clock()
-
-    def due(self) -> bool:
-        """True (and the period starts again) when a re-fusion is due."""
-        now = self._clock()
-        if self.period_s > 0 and now - self._last < self.period_s:
-            return False
-        self._last = now
-        return True
-
-
 def run(cfg: MapstoreSettings, bus: Bus, stop: threading.Event, state: MapState | None = None,
         fetch: BasisFetch | None = None) -> MapState:
     """Serve the map of `cfg.stream` until `stop` is set. ``fetch``: the missing-basis requests (counts)."""
@@ -267,13 +248,15 @@ def run(cfg: MapstoreSettings, bus: Bus, stop: threading.Event, state: MapState 
     log.info("mapstore serving", extra={"stream": cfg.stream})
     last_report = 0.0
     release = MemoryRelease(cfg.release_memory_period_s)
-    refresh = RefreshPace(cfg.refresh_period_s)
+    # what messages change is re-fused at most once per period: every graph update moves ba's window again, and
+    # re-fusing after each one took the mapstore a third of the machine on a lossless KITTI run (docs/BENCHMARKS.md)
+    refresh = Period(cfg.refresh_period_s)
     carried = None  # a message of another session that ended a batch: the first of the next one
     while not stop.is_set():
         delivery, carried = carried or inbox.get(min(POLL_S, PROGRESS_S)), None
         if delivery is not None:
             state = state.for_session(delivery.msg.session)  # the queryable's closure follows the rebinding
-            with state.batch(refresh=refresh.due()):
+            with state.batch(refresh=False):
                 for n in range(cfg.refresh_batch):
                     if n and (delivery := inbox.get(0)) is None:
                         break
@@ -288,9 +271,9 @@ def run(cfg: MapstoreSettings, bus: Bus, stop: threading.Event, state: MapState 
                     if isinstance(msg, Keyframe):  # committed (fused at the batch's end): report at once
                         bus.publish(*progress_report(state, cfg, consumer))
                         last_report = time.monotonic()
-            release.maybe()  # between batches: the re-fusion's arrays are freed
-        if refresh.due() and state.refresh():  # what the batches since the last re-fusion changed
-            release.maybe()
+        if refresh.due():
+            state.refresh()  # what the batches since the last re-fusion changed
+            release.maybe()  # between re-fusions: their arrays are freed
         if time.monotonic() - last_report >= PROGRESS_S:  # heartbeat: the next one repeats it, no need to block
             bus.publish(*progress_report(state, cfg, consumer), drop_if_congested=True)
             last_report = time.monotonic()

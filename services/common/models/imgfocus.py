@@ -86,8 +86,11 @@ def int8_weights(model) -> bytes:
     (docs/BENCHMARKS.md, "Threads that sleep")."""
     import tempfile
 
-    import onnx
-    from onnxruntime.quantization import QuantType, quantize_dynamic
+    try:
+        import onnx
+        from onnxruntime.quantization import QuantType, quantize_dynamic
+    except ImportError as exc:
+        raise missing_models_extra(exc.name or "onnxruntime", "int8 weights") from exc
 
     hint = _WithoutPreprocessingHint()  # its shape pre-processing fails on free height/width: a warning per load
     logging.getLogger().addFilter(hint)
