@@ -89,3 +89,32 @@ def test_edge_targets_stack_every_edge_and_share_the_flows_of_opposite_edges():
         want = flow_targets(imgs[i], imgs[j], FlowParams())
         np.testing.assert_allclose(targets[e], want.target, atol=1e-5)
         np.testing.assert_allclose(confidence[e], want.confidence, atol=1e-5)
+
+
+@pytest.mark.parametrize("stride", [None, 4])
+def test_patch_stride_reaches_dis_and_both_strides_find_a_similarity_warp(stride):
+    """The patch stride (services.ba.core.params.FlowParams.patch_stride; None: the preset's 3) changes what DIS
+    computes, and at either the grid targets of a small rotation with zoom land on the true cell positions."""
+    img = _texture(128, 160, seed=5)
+    centre, angle, zoom = (79.5, 63.5), 2.0, 1.03
+    warp = cv2.getRotationMatrix2D(centre, angle, zoom)  # x' = A x + b, in pixel-centre coordinates
+    moved = cv2.warpAffine(img, warp, (160, 128), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    out = flow_targets(img, moved, FlowParams(patch_stride=stride))
+    rows, cols = np.mgrid[0:16, 0:20]
+    centres = np.stack([cols * 8 + 3.5, rows * 8 + 3.5], -1)  # each cell's centre in working pixels
+    landed = centres @ warp[:, :2].T + warp[:, 2]
+    want = (landed + 0.5) / 8 - 0.5  # docs/CONVENTIONS.md: pixels -> grid coordinates
+    interior = (slice(3, -3), slice(3, -3))
+    np.testing.assert_allclose(out.target[interior], want[interior], atol=0.06)
+    other = flow_targets(img, moved, FlowParams(patch_stride=3 if stride == 4 else 4))
+    assert np.abs(other.flow - out.flow).max() > 1e-3  # the setting reached DIS
+
+
+def test_settings_carry_the_patch_stride_to_mapping_and_tracking(monkeypatch):
+    from services.ba.settings import BaSettings
+
+    monkeypatch.setenv("KMVIPE_BA_FLOW_PATCH_STRIDE", "3")
+    cfg = BaSettings()
+    assert cfg.flow_params().patch_stride == 3 and cfg.tracking_flow_params().patch_stride == 3
+    assert BaSettings(flow_patch_stride=None).flow_params().patch_stride is None
+    assert FlowParams().patch_stride is None

@@ -35,6 +35,8 @@ def dis_flow(image_a: np.ndarray, image_b: np.ndarray, params: FlowParams,
     dis = cv2.DISOpticalFlow_create(_PRESETS[params.preset])
     if params.finest_scale is not None:
         dis.setFinestScale(params.finest_scale)
+    if params.patch_stride is not None:
+        dis.setPatchStride(params.patch_stride)
     a, b = to_grey(image_a), to_grey(image_b)
     if a.shape != b.shape:
         raise ValueError(f"images differ in size: {a.shape} vs {b.shape}")

@@ -92,5 +92,9 @@ class FlowParams:
     finest_scale: int | None = 0  # DIS finest pyramid level (0 = full resolution; None = the preset's).
     # The medium preset stops at level 1, which measured 2.4% short flow magnitudes on the synthetic world
     # (median |flow| ratio 0.976 vs 0.996 at level 0) and biased BA rotations by ~5%.
+    patch_stride: int | None = None  # DIS patch stride in pixels (None = the preset's: 3 for medium). 4 takes 28 %
+    # less time for grid targets as close to exact synthetic flow, and KITTI 07 holds (ATE 0.303-0.309 m, ba 78-80
+    # -> 70 CPU-s), but TartanAir's bare panelled walls need the denser patches: 2.97 % of path against 1.5 %
+    # (2: 1.29 %, +65 % flow time). bench/flow_settings.py, docs/BENCHMARKS.md
     grid: int = 8  # working-resolution pixels per grid cell
     fb_sigma: float = 1.0  # forward-backward error (working px) at which confidence falls to exp(-1/2)
