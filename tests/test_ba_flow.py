@@ -118,3 +118,36 @@ def test_settings_carry_the_patch_stride_to_mapping_and_tracking(monkeypatch):
     assert cfg.flow_params().patch_stride == 3 and cfg.tracking_flow_params().patch_stride == 3
     assert BaSettings(flow_patch_stride=None).flow_params().patch_stride is None
     assert FlowParams().patch_stride is None
+
+
+def test_flow_parameters_for_a_bare_pair_take_the_dense_patch_stride():
+    params = FlowParams()
+    assert params.for_texture(params.low_texture_below) is params  # enough to see: the preset's patches
+    assert params.for_texture(params.low_texture_below - 0.1).patch_stride == params.low_texture_patch_stride == 1
+    assert FlowParams(low_texture_patch_stride=None).for_texture(0.0).patch_stride is None
+
+
+@pytest.mark.parametrize("name, dense", [("rot1", False), ("low_texture", True)])
+def test_keyframe_edges_of_bare_walls_are_flowed_with_dense_patches(name, dense):
+    """The graph's edge targets are DIS's at the dense stride for a pair that shows too little (the synthetic
+    bare wall, texture ~1) and at the preset's for a textured room (~12): the rule reaches the flows BA uses."""
+    import torch
+
+    from services.ba.frontend.graph import KeyframeGraph
+    from services.common.image_texture import texture
+    from services.synth.profiles import profile, profile_world
+
+    world = profile_world(profile(name, n=5), 256, 192)
+    images = [cv2.cvtColor(world.render(seq).rgb, cv2.COLOR_RGB2GRAY) for seq in (0, 4)]
+    params = FlowParams()
+    assert (min(map(texture, images)) < params.low_texture_below) == dense
+    graph = KeyframeGraph(torch.tensor([40.0, 40.0, 15.5, 11.5], dtype=torch.float64), (24, 32), params,
+                          torch.device("cpu"))
+    for seq, grey in zip((0, 4), images):
+        graph.append(seq, seq, grey, None, None, torch.eye(4, dtype=torch.float64),
+                     torch.ones(24, 32, dtype=torch.float64))
+    got = graph.targets(0, 1).target.numpy()
+    dense_targets = pair_targets(*images, FlowParams(patch_stride=1))[0].target
+    preset_targets = pair_targets(*images, params)[0].target
+    np.testing.assert_array_equal(got, dense_targets if dense else preset_targets)
+    assert not np.array_equal(dense_targets, preset_targets)

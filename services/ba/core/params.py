@@ -1,7 +1,7 @@
 """Algorithm parameters of the BA core (frozen dataclasses; the service builds them from its settings)."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 ARK_MODES = ("centred", "paper")  # RobustParams.ark_mode
 
@@ -98,3 +98,15 @@ class FlowParams:
     # (2: 1.29 %, +65 % flow time). bench/flow_settings.py, docs/BENCHMARKS.md
     grid: int = 8  # working-resolution pixels per grid cell
     fb_sigma: float = 1.0  # forward-backward error (working px) at which confidence falls to exp(-1/2)
+    low_texture_below: float = 7.0  # a pair whose working images show less than this (services.common.image_texture:
+    # bare walls; KITTI and the desk show 7.5 and more) ...
+    low_texture_patch_stride: int | None = 1  # ... gets DIS patches this dense (None: no exception). DIS's patches
+    # are what holds a flow where a patch barely constrains it: TartanAir hospital's panelled walls (texture 2.5-6),
+    # ATE 0.221 m at stride 3, 0.188 at 2, 0.148 at 1, for 4.5x the flow time there (bench/frontend.py;
+    # docs/BENCHMARKS.md); bigger patches instead (12 px at stride 3) gave 0.177 m for 2.4x
+
+    def for_texture(self, texture: float) -> "FlowParams":
+        """These parameters for a pair of images showing ``texture`` (the lower of the two)."""
+        if self.low_texture_patch_stride is None or texture >= self.low_texture_below:
+            return self
+        return replace(self, patch_stride=self.low_texture_patch_stride)

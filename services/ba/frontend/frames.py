@@ -25,6 +25,7 @@ from services.ba.core import se3
 from services.ba.frontend import motion
 from services.ba.frontend.graph import KeyframeGraph, Targets
 from services.ba.frontend.params import MotionParams
+from services.common.image_texture import texture
 
 logger = logging.getLogger(__name__)
 
@@ -101,8 +102,9 @@ class FramePoses:
             size = (work.shape[1] // scale, work.shape[0] // scale)
             # at 1/scale, a grid cell is grid/scale pixels and the grid coordinates come out the same
             # ((x + 0.5)/grid - 0.5 with x the landing point at that resolution); fb_sigma is in its pixels
-            params = replace(graph.flow_params, grid=graph.flow_params.grid // scale,
-                             fb_sigma=graph.flow_params.fb_sigma / scale)
+            params = replace(graph.flow_params.for_texture(texture(work)), grid=graph.flow_params.grid // scale,
+                             fb_sigma=graph.flow_params.fb_sigma / scale)  # the keyframe's texture: the frame is
+            # near it, and measured at another size
             keyframe = work if scale == 1 else cv2.resize(work, size, interpolation=cv2.INTER_AREA)
             image = frame.image if frame.image.shape[:2] == size[::-1] else cv2.resize(
                 frame.image, size, interpolation=cv2.INTER_AREA if frame.image.shape[1] > size[0] else cv2.INTER_LINEAR)

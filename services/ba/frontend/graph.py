@@ -14,6 +14,7 @@ from services.ba.core.ba import BAProblem, BAResult, BAState, run_ba
 from services.ba.core.params import BAParams, FlowParams
 from services.ba.frontend.edges import induced_flow_field, temporal_pairs
 from services.common.camera import scale_intrinsics
+from services.common.image_texture import texture
 
 logger = logging.getLogger(__name__)
 GRID = 8  # working pixels per grid cell (docs/CONVENTIONS.md)
@@ -146,8 +147,10 @@ class KeyframeGraph:
             # in the pixels of that size
             params = self.flow_params if scale == 1 else replace(
                 self.flow_params, grid=self.flow_params.grid // scale, fb_sigma=self.flow_params.fb_sigma / scale)
-            if self.flow_preset is not None:
+            if self.flow_preset is not None:  # a live keyframe's cheap flow
                 params = replace(params, preset=self.flow_preset)
+            else:  # bare walls get denser DIS patches (FlowParams.low_texture_below)
+                params = params.for_texture(min(texture(self.images[i]), texture(self.images[j])))
             # both directions at once: the reverse edge is (almost) always asked for too (temporal edges come
             # in pairs), and its two flows are these
             there, back = core_flow.pair_targets(self._image(i), self._image(j), params, fwd, bwd)

@@ -17,6 +17,8 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
+from services.common.image_texture import texture
+
 from .geometry import GRID_STRIDE
 
 _PRESETS = {
@@ -69,12 +71,6 @@ def robust_mean(values: np.ndarray, outlier_fraction: float) -> float:
     flat = np.sort(values.ravel())
     keep = max(1, int(round(flat.size * (1.0 - outlier_fraction))))
     return float(flat[:keep].mean())
-
-
-def texture(grey: np.ndarray) -> float:
-    """Mean absolute grey difference between horizontally and vertically neighbouring pixels, summed."""
-    image = grey.astype(np.int16)
-    return float(np.abs(np.diff(image, axis=1)).mean() + np.abs(np.diff(image, axis=0)).mean())
 
 
 class KeyframeSelector:
