@@ -102,9 +102,10 @@ class FramePoses:
             size = (work.shape[1] // scale, work.shape[0] // scale)
             # at 1/scale, a grid cell is grid/scale pixels and the grid coordinates come out the same
             # ((x + 0.5)/grid - 0.5 with x the landing point at that resolution); fb_sigma is in its pixels
+            # the keyframe's texture decides the patch stride (FlowParams.low_texture_below): the frame sees about
+            # the same scene, and its own image comes at another size, where the measure reads differently
             params = replace(graph.flow_params.for_texture(texture(work)), grid=graph.flow_params.grid // scale,
-                             fb_sigma=graph.flow_params.fb_sigma / scale)  # the keyframe's texture: the frame is
-            # near it, and measured at another size
+                             fb_sigma=graph.flow_params.fb_sigma / scale)
             keyframe = work if scale == 1 else cv2.resize(work, size, interpolation=cv2.INTER_AREA)
             image = frame.image if frame.image.shape[:2] == size[::-1] else cv2.resize(
                 frame.image, size, interpolation=cv2.INTER_AREA if frame.image.shape[1] > size[0] else cv2.INTER_LINEAR)
