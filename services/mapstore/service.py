@@ -268,7 +268,7 @@ def run(cfg: MapstoreSettings, bus: Bus, stop: threading.Event, state: MapState 
                     msg = delivery.msg
                     if (version := _wanted_version(state, msg)) is not None:
                         fetch.want(version)
-                    if isinstance(msg, Keyframe):  # committed (fused at the batch's end): report at once
+                    if isinstance(msg, Keyframe):  # committed (fused at the next re-fusion): report at once
                         bus.publish(*progress_report(state, cfg, consumer))
                         last_report = time.monotonic()
         if refresh.due():

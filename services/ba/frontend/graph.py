@@ -14,7 +14,7 @@ from services.ba.core.ba import BAProblem, BAResult, BAState, run_ba
 from services.ba.core.params import BAParams, FlowParams
 from services.ba.frontend.edges import induced_flow_field, temporal_pairs
 from services.common.camera import scale_intrinsics
-from services.common.image_texture import texture
+from services.common.image_texture import texture as image_texture
 
 logger = logging.getLogger(__name__)
 GRID = 8  # working pixels per grid cell (docs/CONVENTIONS.md)
@@ -83,6 +83,7 @@ class KeyframeGraph:
         self.flow_downscale = 1
         self.flow_preset: str | None = None  # DIS preset of new edge flows instead of flow_params' (live streams)
         self._small: dict[int, np.ndarray] = {}  # seq -> grey image at 1/flow_downscale
+        self._texture: dict[int, float] = {}  # seq -> services.common.image_texture of its working image
 
     def __len__(self) -> int:
         return len(self.seqs)
@@ -124,6 +125,7 @@ class KeyframeGraph:
         self.proximity = {e for e in self.proximity if seq not in e}
         self._cache = {e: t for e, t in self._cache.items() if seq not in e}
         self._small.pop(seq, None)
+        self._texture.pop(seq, None)
 
     def recode(self, convert: Callable[[NativeCodes], torch.Tensor | None]) -> list[int]:
         """Replace every keyframe's BA codes by ``convert`` of the codes it arrived with (a new PCA version: ARK and
@@ -150,7 +152,7 @@ class KeyframeGraph:
             if self.flow_preset is not None:  # a live keyframe's cheap flow
                 params = replace(params, preset=self.flow_preset)
             else:  # bare walls get denser DIS patches (FlowParams.low_texture_below)
-                params = params.for_texture(min(texture(self.images[i]), texture(self.images[j])))
+                params = params.for_texture(min(self.texture(i), self.texture(j)))
             # both directions at once: the reverse edge is (almost) always asked for too (temporal edges come
             # in pairs), and its two flows are these
             there, back = core_flow.pair_targets(self._image(i), self._image(j), params, fwd, bwd)
@@ -167,6 +169,13 @@ class KeyframeGraph:
 
     def put_flows(self, flows: dict[tuple[int, int], Targets]) -> None:
         self._cache.update(flows)
+
+    def texture(self, k: int) -> float:
+        """How much keyframe ``k``'s working image shows (its flows' DIS patch stride, FlowParams.for_texture)."""
+        seq = self.seqs[k]
+        if seq not in self._texture:
+            self._texture[seq] = image_texture(self.images[k])
+        return self._texture[seq]
 
     def _image(self, k: int) -> np.ndarray:
         """Keyframe ``k``'s grey image at 1/flow_downscale of the working size."""
