@@ -1,4 +1,5 @@
-"""The metric code of bench/query_example.py on cases with a known answer (no model, no data files).
+"""The metric code of bench/query_example.py and its core, bench/query_metrics.py, on cases with a known answer
+(no model, no data files).
 
 The end-to-end case uses the synthetic world's oracle features (services/synth: one unit vector per label plus
 noise): two "chair" instances share a vector (same category, indistinguishable), a "table" has its own, so the
@@ -30,6 +31,12 @@ def qe():
     return module
 
 
+@pytest.fixture(scope="module")
+def qm(qe):
+    """Its metric core (bench/query_metrics.py), as the bench imported it."""
+    return sys.modules["query_metrics"]
+
+
 def test_cell_majority_known_answer(qe):
     labels = np.zeros((6, 9), np.int64)
     labels[:3, :3] = 7  # a whole cell
@@ -44,27 +51,27 @@ def test_cell_majority_known_answer(qe):
     np.testing.assert_array_equal(qe.cell_majority(ramp, (1, 3)), [[0, 3, 7]])
 
 
-def test_prf_and_oracle_threshold(qe):
+def test_prf_and_oracle_threshold(qm):
     rel = np.array([True, False, True, False])
-    p = qe.prf(np.array([True, True, True, False]), rel)
+    p = qm.prf(np.array([True, True, True, False]), rel)
     assert (p.precision, p.recall, p.retrieved) == (pytest.approx(2 / 3), 1.0, 3)
-    assert qe.prf(np.zeros(4, bool), rel).precision == 0.0  # nothing retrieved: precision 0, not NaN
-    t, f1 = qe.best_f1_threshold(np.array([0.9, 0.8, 0.7, 0.6]), rel)
+    assert qm.prf(np.zeros(4, bool), rel).precision == 0.0  # nothing retrieved: precision 0, not NaN
+    t, f1 = qm.best_f1_threshold(np.array([0.9, 0.8, 0.7, 0.6]), rel)
     assert (t, f1) == (0.7, pytest.approx(0.8))
     # equal scores cannot be split: the best is t = 0.9 (both retrieved), not the 1.0 of retrieving one
-    t, f1 = qe.best_f1_threshold(np.array([0.9, 0.9, 0.5]), np.array([True, False, False]))
+    t, f1 = qm.best_f1_threshold(np.array([0.9, 0.9, 0.5]), np.array([True, False, False]))
     assert (t, f1) == (0.9, pytest.approx(2 / 3))
 
 
-def test_product_threshold_is_the_mapstores(qe):
+def test_product_threshold_is_the_mapstores(qm):
     """The bench's threshold is the one the mapstore applies to a query that names none (``threshold=-1``)."""
     from services.mapstore.queries import _threshold
 
     s = np.array([0.2, np.nan, 0.9, 0.5])
-    assert qe.product_threshold(s) == pytest.approx(RegionParams().relative_threshold * 0.9)
+    assert qm.product_threshold(s) == pytest.approx(RegionParams().relative_threshold * 0.9)
     for params in (RegionParams(), RegionParams(relative_threshold=0.0, score_threshold=0.3)):
         for scores in (s, np.array([np.nan, np.nan]), np.array([-0.4, 0.1])):
-            assert qe.product_threshold(scores, params) == pytest.approx(_threshold(scores, -1.0, params))
+            assert qm.product_threshold(scores, params) == pytest.approx(_threshold(scores, -1.0, params))
 
 
 def test_paint_labels_order_and_regions(qe):
