@@ -10,7 +10,7 @@ import time
 from typing import Annotated, Optional
 
 import numpy as np
-from fastapi import APIRouter, HTTPException, Query, Request
+from fastapi import APIRouter, HTTPException, Path, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -25,6 +25,8 @@ from .routes import ERRORS, STREAM, _answer_out, _options, _stream
 router = APIRouter(prefix="/v1", responses=ERRORS)
 REFUSAL_STATUS = {"not_found": 404, "no_codes": 409, "bad_request": 422}  # KeyframeRefusal.status → HTTP
 Unit = Annotated[float, Field(ge=0.0, le=1.0)]
+SEQ_MAX = 2**63 - 1  # a frame seq travels to the mapstore as a msgpack int64: a larger one is a 422, not a 500
+Seq = Annotated[int, Field(ge=0, le=SEQ_MAX)]
 UNKNOWN_VERB = "unknown map verb"  # how a map service without these verbs refuses them (mapstore/queries.py, refmap.py)
 
 
@@ -46,7 +48,7 @@ class KeyframesResponse(BaseModel):
 class KeyframeQueryRequest(BaseModel):
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
         {"seq": 12, "box": [0.25, 0.4, 0.5, 0.8]}, {"seq": 12, "box": [0.3, 0.6, 0.3, 0.6], "top_k": 10}]})
-    seq: int = Field(ge=0, description="The keyframe (a seq from GET /keyframes).")
+    seq: Seq = Field(description="The keyframe (a seq from GET /keyframes).")
     box: list[Unit] = Field(min_length=4, max_length=4, description="Region [x0, y0, x1, y1] normalised to the "
                             "image (0 = left/top edge, 1 = right/bottom edge); x0 = x1, y0 = y1: the 1/8-grid cell "
                             "under that point (a click).")
@@ -115,7 +117,8 @@ async def list_keyframes(request: Request, stream: str = STREAM,
 
 @router.get("/streams/{stream}/keyframes/{seq}/thumbnail", summary="A keyframe's thumbnail (JPEG)",
             response_class=Response, responses={200: {"content": {"image/jpeg": {}}}})
-async def keyframe_thumbnail(request: Request, seq: int, stream: str = STREAM) -> Response:
+async def keyframe_thumbnail(request: Request, seq: Annotated[int, Path(ge=0, le=SEQ_MAX)],
+                             stream: str = STREAM) -> Response:
     """The small JPEG the mapstore kept of the keyframe (longest side KMVIPE_MAPSTORE_THUMBNAIL_SIDE)."""
     stream = _stream(stream)
     thumb = await run_in_threadpool(_client(request).thumbnail, stream, seq)
