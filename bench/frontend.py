@@ -31,7 +31,7 @@ from tqdm import tqdm
 
 from services.ba.frontend import graph as frontend_graph
 from services.ba.frontend import motion as frontend_motion
-from services.ba.core import se3
+from services.ba.core import se3_numpy
 from services.ba.frontend.frontend import FrameInput, Frontend, KeyframeInput
 from services.ba.frontend.tracker import Tracker
 from services.ba.settings import BaSettings
@@ -224,11 +224,13 @@ def _track(tracker: Tracker | None, frame: SourceFrame, work: np.ndarray, intrin
     out = tracker.track(frame.index, frame.t_ns, lite, lite_k)  # before the map: provisional rotation-only poses
     if out is None:
         return None
-    first.setdefault(frame.index, (frame.t_ns, out.pose.numpy()))
+    first.setdefault(frame.index, (frame.t_ns, out.pose))
     if not out.ok:
         return None
-    flow = None if out.target is None else (out.target, out.confidence)  # a relocalised pose carries no flow
-    return out.ref_seq, se3.inverse(tracker.reference.pose) @ out.pose, out.pose, flow
+    # tensors, as the ba service takes a step from its tracking process (services/ba/tracking.py)
+    flow = None if out.target is None else (torch.from_numpy(out.target), torch.from_numpy(out.confidence))
+    return (out.ref_seq, torch.from_numpy(se3_numpy.inverse(tracker.reference.pose) @ out.pose),
+            torch.from_numpy(out.pose), flow)  # a relocalised pose carries no flow
 
 
 def _instrument() -> dict[str, list]:

@@ -14,6 +14,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -39,13 +40,15 @@ def main() -> int:
     coords = projective.reproject(keyframe, truth[None], disparity.reshape(1, -1), pixels, intrinsics, False).coords
     targets = (coords + 0.05 * torch.randn(coords.shape, dtype=torch.float64, generator=gen)).reshape(1, h, w, 2)
     confidence = torch.ones(1, h, w, dtype=torch.float64)
-    start = torch.eye(4, dtype=torch.float64)
-    result = motion.align(start, keyframe, disparity, targets, confidence, intrinsics, MotionParams())
+    start = np.eye(4)
+    # numpy arrays, as the tracking process holds them
+    problem = [t.numpy() for t in (keyframe, disparity, targets, confidence, intrinsics)]
+    result = motion.align(start, *problem, MotionParams())
     began = time.perf_counter()
     for _ in range(args.calls):
-        motion.align(start, keyframe, disparity, targets, confidence, intrinsics, MotionParams())
+        motion.align(start, *problem, MotionParams())
     ms = (time.perf_counter() - began) / args.calls * 1e3
-    error = float((result.pose - truth).abs().max())
+    error = float(np.abs(result.pose - truth.numpy()).max())
     print(f"motion-only alignment, {h}x{w} grid: {ms:.1f} ms per call, {result.steps} steps, "
           f"pose error {error:.1e} (max abs of the 4x4 difference)")
     return 0

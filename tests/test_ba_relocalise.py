@@ -10,12 +10,14 @@ import numpy as np
 import pytest
 import torch
 
-from services.ba.core import se3
+from services.ba.core import se3, se3_numpy
+from services.ba.core.host_arrays import as_numpy
 from services.ba.core.params import FlowParams
 from services.ba.frontend import motion
 from services.ba.frontend.graph import GRID, KeyframeGraph, grid_intrinsics
 from services.ba.frontend.params import MotionParams, RelocaliseParams
-from services.ba.frontend.relocalise import pnp_pose, realign_keyframe
+from services.ba.frontend.pnp import pnp_pose
+from services.ba.frontend.relocalise import realign_keyframe
 from services.ba.frontend.tracker import Reference, Tracker
 from services.ba.settings import BaSettings
 
@@ -39,11 +41,11 @@ def _disparity(frame) -> torch.Tensor:
     return torch.from_numpy(1.0 / depth).double()
 
 
-def _errors(pose: torch.Tensor, truth: np.ndarray) -> tuple[float, float]:
-    """(position error, rotation error in degrees)."""
-    t = torch.from_numpy(truth)
-    rot = math.degrees(float(se3.so3_log(pose[:3, :3].T @ t[:3, :3]).norm()))
-    return float((pose[:3, 3] - t[:3, 3]).norm()), rot
+def _errors(pose, truth: np.ndarray) -> tuple[float, float]:
+    """(position error, rotation error in degrees) of a numpy or torch pose."""
+    pose = as_numpy(pose)
+    rot = math.degrees(float(np.linalg.norm(se3_numpy.so3_log(pose[:3, :3].T @ truth[:3, :3]))))
+    return float(np.linalg.norm(pose[:3, 3] - truth[:3, 3])), rot
 
 
 def _turn(world, a: int, b: int) -> float:

@@ -21,7 +21,7 @@ def tracked_live():
     the frontend's newest keyframe by the tracker the ba service runs, then anchored 5 cm off in a random direction
     (the error of a pose solved against a keyframe's depth before its BA) with that tracker's flow beside it;
     every third frame is one tracking had no time for, posed by time alone."""
-    from services.ba.core import se3
+    from services.ba.core import se3_numpy
     from services.ba.settings import BaSettings
 
     world, msgs = synth_stream(n_frames=60, rendered=24, every=4, width=256)
@@ -38,11 +38,12 @@ def tracked_live():
         elif isinstance(msg, FrameLite) and fe.initialised:
             out = tracker.track(msg.seq, msg.t_ns, msg.image)
             assert out.ok and out.target is not None, msg.seq
-            rel = se3.inverse(tracker.reference.pose) @ out.pose
+            # as the ba service takes a step from its tracking process (services/ba/tracking.py): numpy to torch
+            rel = torch.from_numpy(se3_numpy.inverse(tracker.reference.pose) @ out.pose)
             direction = torch.randn(3, generator=gen, dtype=torch.float64)
             rel[:3, 3] += 0.05 * direction / direction.norm()
-            fe.add_frame(FrameInput(msg.seq, msg.t_ns, msg.image, (out.ref_seq, rel),
-                                    tracked_flow=(out.ref_seq, out.target, out.confidence)))
+            fe.add_frame(FrameInput(msg.seq, msg.t_ns, msg.image, (out.ref_seq, rel), tracked_flow=(
+                out.ref_seq, torch.from_numpy(out.target), torch.from_numpy(out.confidence))))
     return world, fe
 
 

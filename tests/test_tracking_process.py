@@ -4,12 +4,14 @@ reference and the frame in hand still gets its pose."""
 from __future__ import annotations
 
 import os
-import time
+import pickle
 import signal
+import sys
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 from services.ba.settings import BaSettings
 from services.ba.tracking_process import LocalTracker, TrackerProcess, pack_reference, unpack_reference
@@ -42,12 +44,22 @@ def _track(tracker, world, frames):
 
 
 def test_a_reference_crosses_the_pipe_unchanged(world):
-    ref = _reference(world, 0)._replace(previous=(5, torch.eye(4, dtype=torch.float64)))
-    back = unpack_reference(pack_reference(ref))
+    ref = _reference(world, 0)._replace(previous=(5, np.eye(4)))
+    back = unpack_reference(pickle.loads(pickle.dumps(pack_reference(ref))))
     for name in ("pose", "disparity", "intrinsics"):
-        assert torch.equal(getattr(back, name), getattr(ref, name))
-    assert back.seq == ref.seq and np.array_equal(back.image, ref.image) and torch.equal(back.previous[1],
-                                                                                          ref.previous[1])
+        assert np.array_equal(getattr(back, name), getattr(ref, name))
+    assert back.seq == ref.seq and np.array_equal(back.image, ref.image) and np.array_equal(back.previous[1],
+                                                                                            ref.previous[1])
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads the child's /proc/<pid>/maps")
+def test_the_tracking_process_runs_without_torch(world, process):
+    """The child maps only the tracker's libraries (numpy and OpenCV): torch would cost it ~200 MB of memory and
+    seconds of start. Checked on the spawned child itself, after it tracked a frame."""
+    process.set_reference(_reference(world, 0))
+    assert _track(process, world, [1])[0].ok
+    libraries = Path(f"/proc/{process._proc.pid}/maps").read_text()
+    assert "libtorch" not in libraries and "libc10" not in libraries
 
 
 def test_the_child_tracks_as_the_thread_does_to_the_exact_trajectory(world, process):
@@ -58,7 +70,7 @@ def test_the_child_tracks_as_the_thread_does_to_the_exact_trajectory(world, proc
     ours, theirs = _track(process, world, range(1, 6)), _track(local, world, range(1, 6))
     for i, (a, b) in enumerate(zip(ours, theirs), start=1):
         assert a.ok and a.ref_seq == 0 and np.allclose(a.pose, b.pose, atol=1e-9)
-        trans, rot = _errors(torch.from_numpy(a.pose), world.poses[i])
+        trans, rot = _errors(a.pose, world.poses[i])
         assert trans < 0.05 * step + 2e-3 and rot < 0.3, (i, trans, rot)
         assert np.allclose(world.poses[0] @ a.ref_from_cam, a.pose)  # relative to the reference keyframe
     predicted = process.predict(world.render(6).t_ns)
@@ -76,7 +88,7 @@ def test_a_killed_child_is_started_again_from_the_last_reference(world, process)
     fresh = LocalTracker(BaSettings(tracking_process=False).tracker_factory())  # no motion history, as the new child
     fresh.set_reference(_reference(world, 0))
     assert first.ok and np.allclose(again.pose, _track(fresh, world, [2])[0].pose, atol=1e-9)
-    trans, _ = _errors(torch.from_numpy(again.pose), world.poses[2])
+    trans, _ = _errors(again.pose, world.poses[2])
     assert trans < 0.1 * float(np.linalg.norm(world.poses[2, :3, 3] - world.poses[0, :3, 3]))
 
 
@@ -98,7 +110,7 @@ def test_keyframes_tracking_moves_on_to_keep_the_following_frames_on_the_exact_t
         else:
             out = process.step(False, i, f.t_ns, _grey(f.rgb, half=True), np.asarray(f.intrinsics) / 2)
         assert out is not None and out.ok, i
-        trans, rot = _errors(torch.from_numpy(out.pose), world.poses[i])
+        trans, rot = _errors(out.pose, world.poses[i])
         travelled = float(np.linalg.norm(world.poses[i, :3, 3] - world.poses[0, :3, 3]))
         assert trans < 0.1 * travelled + 5e-3 and rot < 0.5, (i, trans, rot)
         assert out.ref_seq == (6 if i > 6 else 0), (i, out.ref_seq)  # after keyframe 6, aligned to it
@@ -129,7 +141,7 @@ def test_a_process_started_ahead_is_taken_by_the_first_stream_with_the_same_sett
 
 
 def test_frames_that_come_while_the_tracking_process_starts_are_held_and_all_posed(world, unix_endpoint):
-    """A stream's first frames arrive while its tracking process imports torch (no process started ahead): the
+    """A stream's first frames arrive while its tracking process starts (no process started ahead): the
     real-time inbox holds them rather than drop them (a frame before the map that is dropped gets no pose at all),
     and once tracking caught up the inbox is back at its real-time bound."""
     from services.ba.tracking import TrackingLoop

@@ -71,7 +71,7 @@ class TrackingLoop:
     def _start_tracker(self) -> None:
         """On the tracking thread, so mapping's loop (its progress reports, a resumed stream's catch-up) never
         waits for it: a tracking process that was not started ahead (``prewarm``), or one that comes up slowly on
-        a loaded CPU, takes seconds to import torch. Frames meanwhile queue in the inbox beyond its real-time bound:
+        a loaded CPU, takes a second or more to import numpy, OpenCV and the tracker. Frames meanwhile queue in the inbox beyond its real-time bound:
         dropped, a frame before the map would get no pose at all (there is nothing to predict from), and tracking
         catches up in a fraction of the wait (a frame before the map costs a few milliseconds). The inbox returns
         to its bound once tracking has caught up (:meth:`Inbox.widen`)."""

@@ -4,8 +4,8 @@ Tracking and mapping in one process share one Python interpreter: a frame's moti
 interpreter hundreds of times, and each time waits behind mapping's BA. On a 2-core CPU that capped ba at one
 core and put a live frame's pose hundreds of milliseconds behind its capture. Here the :class:`Tracker` lives in
 a child process (``spawn``: the parent holds Zenoh's threads, which a fork would copy half-alive); ba's tracking
-thread sends it each frame and publishes the pose it gets back. Only numpy arrays cross the pipe (torch would
-pass tensors as shared-memory handles, one file descriptor each).
+thread sends it each frame and publishes the pose it gets back. Only numpy arrays cross the pipe. The child never
+imports torch (the tracker is numpy and OpenCV): torch would add ~200 MB to it and seconds to its start.
 
 A child that dies (killed, out of memory) is started again with the last reference mapping gave it: the frame
 in hand is tracked by the new child, nothing waits forever (``timeout_s``), and the restarts are counted.
@@ -21,12 +21,12 @@ from typing import Callable, NamedTuple
 
 import cv2
 import numpy as np
-import torch
 
-from services.ba.core import se3
+from services.ba.core import se3_numpy as se3
 from services.ba.core.flow import to_grey
 from services.ba.frontend.tracker import Reference, Tracker
 from services.common.camera import scale_intrinsics
+from services.common.lifecycle import limit_blas_threads
 
 log = logging.getLogger(__name__)
 
@@ -55,11 +55,11 @@ def step(tracker: Tracker, is_keyframe: bool, seq: int, t_ns: int, image: np.nda
         tracker.keyframe_seen(seq)
     ref_from_cam = None
     if out.ok:
-        ref_from_cam = (se3.inverse(tracker.reference.pose) @ out.pose).cpu().numpy()
+        ref_from_cam = se3.inverse(tracker.reference.pose) @ out.pose
         if is_keyframe:  # tracking moves on to it now, whether or not mapping keeps up
             tracker.promote(seq, t_ns, grey, out.pose)  # its reference image at working resolution
-    flow = (out.target.numpy(), out.confidence.numpy()) if out.ok and out.target is not None else None
-    return Step(out.pose.detach().cpu().numpy().astype(np.float64), out.ok, out.ref_seq, ref_from_cam, flow)
+    flow = (out.target, out.confidence) if out.ok and out.target is not None else None
+    return Step(np.asarray(out.pose, np.float64), out.ok, out.ref_seq, ref_from_cam, flow)
 
 
 def half_size(grey: np.ndarray, intrinsics: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -74,27 +74,16 @@ def predict(tracker: Tracker, t_ns: int) -> np.ndarray | None:
     """The constant-velocity pose at ``t_ns``; None before the map."""
     if tracker.reference is None:
         return None
-    return tracker.predict(t_ns).detach().cpu().numpy().astype(np.float64)
+    return np.asarray(tracker.predict(t_ns), np.float64)
 
 
 def pack_reference(ref: Reference) -> dict:
-    """``ref`` with numpy arrays in place of tensors (what crosses the pipe)."""
-    as_np = lambda t: None if t is None else t.detach().cpu().numpy()  # noqa: E731
-    out = ref._asdict()
-    out.update(pose=as_np(ref.pose), disparity=as_np(ref.disparity), intrinsics=as_np(ref.intrinsics),
-               known=as_np(ref.known),
-               previous=None if ref.previous is None else (ref.previous[0], as_np(ref.previous[1])))
-    return out
+    """``ref`` as the fields that cross the pipe (numpy arrays)."""
+    return ref.on_host()._asdict()
 
 
-def unpack_reference(packed: dict, device: str = "cpu") -> Reference:
-    as_t = lambda a: None if a is None else torch.from_numpy(np.asarray(a)).to(device)  # noqa: E731
-    fields = dict(packed)
-    fields.update(pose=as_t(fields["pose"]), disparity=as_t(fields["disparity"]),
-                  intrinsics=as_t(fields["intrinsics"]), known=as_t(fields["known"]),
-                  previous=None if fields["previous"] is None else (fields["previous"][0],
-                                                                    as_t(fields["previous"][1])))
-    return Reference(**fields)
+def unpack_reference(packed: dict) -> Reference:
+    return Reference(**packed)
 
 
 class LocalTracker:
@@ -125,7 +114,7 @@ class LocalTracker:
 
 def _serve(conn, make_tracker: Callable[[], Tracker], niceness: int, threads: int) -> None:
     """The child: answer (call, args) requests until the pipe closes."""
-    torch.set_num_threads(threads)
+    limit_blas_threads(threads)  # the alignment's products: OpenBLAS threads would spin on the shared cores
     cv2.setNumThreads(threads)  # DIS too: OpenCV's own pool would spread each flow over every core
     try:  # absolute, not relative to the thread that started it
         os.setpriority(os.PRIO_PROCESS, 0, niceness)
@@ -172,7 +161,7 @@ class TrackerProcess:
                                  name=self.name, daemon=True)
         self._proc.start()
         child.close()
-        # up before the first frame is sent to it: a frame must not wait behind the torch import
+        # up before the first frame is sent to it: a frame must not wait behind its imports
         try:
             started = self._conn.poll(self.timeout_s) and self._conn.recv() == (True, "ready")
         except (EOFError, OSError):  # it died on the way up
@@ -247,8 +236,8 @@ class _Spare:
 
 
 def prewarm(make_tracker: Callable[[], Tracker], niceness: int = 0) -> None:
-    """Start a tracking process now, in the background, for the first stream to take: spawning one imports torch
-    (seconds), and a stream's first frames would wait for it."""
+    """Start a tracking process now, in the background, for the first stream to take: spawning one imports numpy,
+    OpenCV and the tracker (a second on a loaded CPU), and a stream's first frames would wait for it."""
     def start() -> None:
         proc = TrackerProcess(make_tracker, niceness)
         try:

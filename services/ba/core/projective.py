@@ -21,9 +21,7 @@ from typing import NamedTuple
 
 import torch
 
-
-# Points closer than this depth (same units as 1/disparity) in the target camera are marked invalid.
-MIN_DEPTH = 1e-3
+from services.ba.core.projective_numpy import MIN_DEPTH  # noqa: F401 — one threshold for both
 
 
 class Reprojection(NamedTuple):

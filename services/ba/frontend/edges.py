@@ -1,10 +1,8 @@
 """Edges of the keyframe graph: temporal pairs, proximity by induced flow with non-maximum suppression."""
 from __future__ import annotations
 
-import cv2
 from typing import NamedTuple
 
-import numpy as np
 import torch
 
 from services.ba.core import projective
@@ -59,20 +57,6 @@ def flow_parts(poses: torch.Tensor, disparity: torch.Tensor, intrinsics: torch.T
 
     return FlowParts(mean(at.coords - pixels), mean(at.coords - far.coords), mean(far.coords - pixels),
                      inside.sum(-1) / (h * w))
-
-
-def induced_flow_field(pose_i: torch.Tensor, pose_j: torch.Tensor, disparity_i: torch.Tensor,
-                       intrinsics: torch.Tensor, grid: int) -> np.ndarray:
-    """Working-resolution flow ``(h*grid, w*grid, 2)`` float32 of keyframe i into j that the current poses and
-    i's grid disparity ``(h, w)`` induce (0 where a point falls behind camera j): an initial flow for DIS."""
-    h, w = disparity_i.shape
-    pixels = projective.pixel_grid(h, w, pose_i.dtype, pose_i.device)
-    rp = projective.reproject(pose_i[None], pose_j[None], disparity_i.reshape(1, -1).to(pose_i.dtype), pixels,
-                              intrinsics, with_jacobians=False)
-    flow = ((rp.coords[0] - pixels) * rp.valid[0, :, None] * grid).reshape(h, w, 2)
-    flow = torch.nan_to_num(flow, nan=0.0, posinf=0.0, neginf=0.0).cpu().numpy().astype(np.float32)
-    # grid cell centres sit at working pixels 8c + 3.5, so a plain resize keeps them aligned
-    return cv2.resize(flow, (w * grid, h * grid), interpolation=cv2.INTER_LINEAR)
 
 
 def temporal_pairs(indices: list[int], radius: int) -> list[tuple[int, int]]:

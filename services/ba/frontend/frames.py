@@ -141,7 +141,7 @@ class FramePoses:
             logger.info("frame posed by time: its flow to the keyframes holds no evidence", extra={"seq": seq})
             between = self._between_neighbours(graph, frame)
             return self._anchor(graph, frame, kfs[0], init if between is None else between)
-        return self._anchor(graph, frame, kfs[0], res.pose)
+        return self._anchor(graph, frame, kfs[0], torch.from_numpy(res.pose).to(init))
 
     def resolve(self, graph: KeyframeGraph, seq: int) -> torch.Tensor | None:
         """Solve tracked frame ``seq`` again with tracking's flow against its reference keyframe as the graph holds
@@ -156,9 +156,9 @@ class FramePoses:
         res = motion.align(current, graph.poses[k][None], graph.disparity[k][None], t.target[None].to(dev),
                            t.confidence[None].to(dev), graph.intrinsics, self.params)
         frame.resolved = True
-        if not res.ok or not bool(torch.isfinite(res.pose).all()):
+        if not res.ok or not bool(np.isfinite(res.pose).all()):
             return None
-        return self._anchor(graph, frame, graph.index(frame.anchor), res.pose)
+        return self._anchor(graph, frame, graph.index(frame.anchor), torch.from_numpy(res.pose).to(current))
 
     def resolvable(self, before: int | None = None, again: bool = False) -> list[int]:
         """Tracked frames :meth:`resolve` can improve, oldest first: not aligned with mapping's flow, tracking's

@@ -22,6 +22,7 @@ import torch
 
 from services.ba.core import flow as core_flow
 from services.ba.core import se3
+from services.ba.core.host_arrays import as_numpy
 from services.ba.frontend import init, inputs, motion, relocalise, start, steps, upkeep
 from services.ba.frontend.frames import FramePoses, FrameRecord
 from services.ba.frontend.graph import KeyframeGraph, Targets, grid_intrinsics, working_intrinsics
@@ -52,7 +53,7 @@ class Frontend(Refinement):
         self._deferred = 0  # keyframes in a row whose window BA was left to a later keyframe
         self._since_global = 0  # keyframes joined since the last BA over every held keyframe (refine_globally)
         self._background_bas = 0  # BAs over every held keyframe during the stream (refine_globally)
-        self._carried: dict[int, torch.Tensor] = {}  # deferred keyframe seq -> (h, w) 1 where its carried-over
+        self._carried: dict[int, np.ndarray] = {}  # deferred keyframe seq -> (h, w) 1 where its carried-over
         # disparity is measured (a point landed), 0 where filled in; emptied by the next window BA
 
     # --- inputs ----------------------------------------------------------------------------------------
@@ -123,8 +124,9 @@ class Frontend(Refinement):
         g = self.graph
         # its depth carried over from the keyframe before (not that keyframe's map as it is): the BA that comes
         # starts there, and tracking takes it as its reference at once
-        g.disparity[k], self._carried[g.seqs[k]] = propagate_disparity(g.poses[k - 1], g.poses[k], g.disparity[k - 1],
-                                                                       g.intrinsics)
+        disparity, known = propagate_disparity(g.poses[k - 1], g.poses[k], g.disparity[k - 1], g.intrinsics)
+        g.disparity[k] = torch.from_numpy(disparity).to(g.disparity[k - 1])
+        self._carried[g.seqs[k]] = known
         self._add_proximity(k)
         seqs = [self.graph.seqs[k]]
         for seq in self.frames.pending(self.graph):
@@ -141,15 +143,16 @@ class Frontend(Refinement):
         self.frames.drop_before(g.seqs[0])
 
     def reference(self) -> Reference | None:
-        """Snapshot of the newest keyframe for the tracker (None before the map starts)."""
+        """Snapshot of the newest keyframe for the tracker, in numpy (None before the map starts)."""
         g = self.graph
         if g is None or not self.initialised or len(g) == 0:
             return None
         k = len(g) - 1
-        previous = (g.stamps[k - 1], g.poses[k - 1].clone()) if k > 0 else None
+        snap = lambda t: as_numpy(t).copy()  # noqa: E731 — a CPU tensor's numpy view would follow later BAs
+        previous = (g.stamps[k - 1], snap(g.poses[k - 1])) if k > 0 else None
         known = self._carried.get(g.seqs[k])  # a deferred keyframe: its depth carried over, no BA yet
-        return Reference(g.seqs[k], g.stamps[k], g.poses[k].clone(), g.disparity[k].clone(),
-                         g.intrinsics.clone(), g.images[k], previous, None if known is None else known.clone())
+        return Reference(g.seqs[k], g.stamps[k], snap(g.poses[k]), snap(g.disparity[k]), snap(g.intrinsics),
+                         g.images[k], previous, None if known is None else known.copy())
 
     def add_frame(self, frame: FrameInput) -> Update:
         image = core_flow.to_grey(np.asarray(frame.image))
@@ -225,7 +228,7 @@ class Frontend(Refinement):
                            t.confidence[None].to(self.device), g.intrinsics, self.params.motion)
         aligned, res = res, relocalise.realign_keyframe(g, k, res, self.params.motion, self.params.relocalise)
         self.relocalised += res is not aligned
-        pose = res.pose if res.ok else g.poses[k]
+        pose = torch.from_numpy(res.pose).to(g.poses[k]) if res.ok else g.poses[k]
         if not steps.plausible(g, pose, k, self.params.max_step_growth):
             logger.info("keyframe pose implausible; bounded constant-velocity prediction kept",
                         extra={"seq": g.seqs[k]})

@@ -12,7 +12,8 @@ import torch
 from services.ba.core import flow as core_flow
 from services.ba.core.ba import BAProblem, BAResult, BAState, run_ba
 from services.ba.core.params import BAParams, FlowParams
-from services.ba.frontend.edges import induced_flow_field, temporal_pairs
+from services.ba.core.projective_numpy import induced_flow_field
+from services.ba.frontend.edges import temporal_pairs
 from services.common.camera import scale_intrinsics
 from services.common.image_texture import texture as image_texture
 

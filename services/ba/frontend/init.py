@@ -209,7 +209,7 @@ def _seed_and_adjust(graph: KeyframeGraph, start: TwoView, ba_params: BAParams, 
         init = torch.from_numpy(_scaled(start.first_from_second, frac)).to(dev, dtype)
         res = motion.align(init, graph.poses[first][None], disp[None], t.target[None].to(dev),
                            t.confidence[None].to(dev), graph.intrinsics, motion_params)
-        graph.poses[k] = res.pose if res.ok else init
+        graph.poses[k] = torch.from_numpy(res.pose).to(init) if res.ok else init
     everything = list(range(n))
     result = graph.run(everything, temporal_pairs(everything, 2), ba_params)
     return float("inf") if result is None else float(result.costs[-1])

@@ -13,6 +13,10 @@ aligned to a keyframe ever further back until the flow breaks. So while mapping 
 before the newest, a keyframe that tracking itself aligned is promoted to reference, its depth the reference's
 grid disparity carried over by the tracked motion (:func:`propagate_disparity`, as SVO and LSD-SLAM carry depth
 to a new keyframe); mapping's result replaces it once mapping is at most one keyframe behind.
+
+numpy and OpenCV only: the tracker runs in a process of its own (services/ba/tracking_process.py), which would
+hold ~200 MB more for importing torch. References from mapping's graph are read on the host
+(:meth:`Tracker.set_reference`).
 """
 from __future__ import annotations
 
@@ -21,13 +25,13 @@ from typing import NamedTuple
 
 import cv2
 import numpy as np
-import torch
 
 from services.ba.core import flow as core_flow
-from services.ba.core import se3
+from services.ba.core import se3_numpy as se3
+from services.ba.core.host_arrays import as_numpy
 from services.ba.core.params import FlowParams
-from services.ba.frontend import motion, relocalise
-from services.ba.frontend.edges import induced_flow_field
+from services.ba.core.projective_numpy import induced_flow_field
+from services.ba.frontend import motion, pnp
 from services.ba.frontend.params import MotionParams, RelocaliseParams
 from services.ba.frontend.rotation import bearing_rotation
 
@@ -39,29 +43,36 @@ class Reference(NamedTuple):
 
     seq: int
     stamp: int  # t_ns
-    pose: torch.Tensor  # (4, 4) float64 world_from_cam
-    disparity: torch.Tensor  # (h, w) float64 grid disparity
-    intrinsics: torch.Tensor  # (4,) float64 grid intrinsics
+    pose: np.ndarray  # (4, 4) float64 world_from_cam
+    disparity: np.ndarray  # (h, w) float64 grid disparity
+    intrinsics: np.ndarray  # (4,) float64 grid intrinsics
     image: np.ndarray  # (H, W) uint8 grey at working resolution
-    previous: tuple[int, torch.Tensor] | None = None  # (t_ns, world_from_cam) of the keyframe before: its motion
-    known: torch.Tensor | None = None  # (h, w) 1 where the disparity is measured, 0 where it was only filled in
+    previous: tuple[int, np.ndarray] | None = None  # (t_ns, world_from_cam) of the keyframe before: its motion
+    known: np.ndarray | None = None  # (h, w) 1 where the disparity is measured, 0 where it was only filled in
+
+    def on_host(self) -> "Reference":
+        """The same reference with numpy float64 arrays (mapping builds it from its graph's tensors)."""
+        optional = lambda a: None if a is None else as_numpy(a)  # noqa: E731
+        previous = None if self.previous is None else (self.previous[0], as_numpy(self.previous[1]))
+        return self._replace(pose=as_numpy(self.pose), disparity=as_numpy(self.disparity),
+                             intrinsics=as_numpy(self.intrinsics), previous=previous, known=optional(self.known))
 
 
 class Tracked(NamedTuple):
     seq: int
     stamp: int
-    pose: torch.Tensor  # (4, 4) float64 world_from_cam
+    pose: np.ndarray  # (4, 4) float64 world_from_cam
     ref_seq: int  # the keyframe it was aligned to
     ok: bool  # False: too little flow to align; the pose is the constant-velocity prediction
-    target: torch.Tensor | None = None  # (h, w, 2) float32 CPU: where the reference's grid cells landed (grid coords)
-    confidence: torch.Tensor | None = None  # (h, w) float32 CPU: their confidence (flow and photometric agreement)
+    target: np.ndarray | None = None  # (h, w, 2) float32: where the reference's grid cells landed (grid coords)
+    confidence: np.ndarray | None = None  # (h, w) float32: their confidence (flow and photometric agreement)
 
 
 MAX_PROMOTED = 64  # keyframe poses tracking remembers, to correct its carried-over reference by mapping's
 MAX_EXTRAPOLATION = 8.0  # a prediction extends a motion at most this many times its own duration
 
 
-def _extrapolate(t0: int, pose0: torch.Tensor, t1: int, pose1: torch.Tensor, stamp: int) -> torch.Tensor:
+def _extrapolate(t0: int, pose0: np.ndarray, t1: int, pose1: np.ndarray, stamp: int) -> np.ndarray:
     """The motion from (t0, pose0) to (t1, pose1) continued at the same rate to ``stamp`` (geodesic in SE3)."""
     span = t1 - t0
     frac = (stamp - t1) / span if span > 0 else 0.0
@@ -75,40 +86,42 @@ def _extrapolate(t0: int, pose0: torch.Tensor, t1: int, pose1: torch.Tensor, sta
 # 3 % and 1.2 px, a pose one should not build on.
 TRACK_MIN_SHARE = 0.03
 TRACK_MAX_RMS = 1.0
-def propagate_disparity(pose_from: torch.Tensor, pose_to: torch.Tensor, disparity: torch.Tensor,
-                        intrinsics: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def propagate_disparity(pose_from, pose_to, disparity, intrinsics) -> tuple[np.ndarray, np.ndarray]:
     """Grid disparity ``(h, w)`` of camera ``pose_to`` from camera ``pose_from``'s ``(h, w)`` grid disparity: each
     cell's point moved into the new camera and splatted to its nearest cell (the nearest point wins); cells no
-    point lands in get the median of those that did. Poses world_from_cam ``(4, 4)``, grid intrinsics ``(4,)``.
-    Returns (disparity, known): ``known`` is 1 where a point landed, 0 where the median filled in."""
+    point lands in get the median of those that did. Poses world_from_cam ``(4, 4)``, grid intrinsics ``(4,)``
+    (numpy arrays or torch tensors). Returns float64 (disparity, known): ``known`` is 1 where a point landed, 0
+    where the median filled in."""
+    disparity = as_numpy(disparity)
     h, w = disparity.shape
-    dev = disparity.device
-    fx, fy, cx, cy = (float(v) for v in intrinsics)
-    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float64, device=dev),
-                            torch.arange(w, dtype=torch.float64, device=dev), indexing="ij")
-    disp = disparity.to(torch.float64).clamp_min(1e-6)
-    points = torch.stack([(xs - cx) / fx / disp, (ys - cy) / fy / disp, 1.0 / disp], dim=-1).reshape(-1, 3)
-    to_from = (se3.inverse(pose_to) @ pose_from).to(dev, torch.float64)
+    fx, fy, cx, cy = (float(v) for v in as_numpy(intrinsics))
+    ys, xs = np.meshgrid(np.arange(h, dtype=np.float64), np.arange(w, dtype=np.float64), indexing="ij")
+    disp = np.maximum(disparity, 1e-6)
+    points = np.stack([(xs - cx) / fx / disp, (ys - cy) / fy / disp, 1.0 / disp], axis=-1).reshape(-1, 3)
+    to_from = se3.inverse(as_numpy(pose_to)) @ as_numpy(pose_from)
     moved = points @ to_from[:3, :3].T + to_from[:3, 3]
     z = moved[:, 2]
     front = z > 1e-6
-    u = torch.round(moved[:, 0] / z.clamp_min(1e-6) * fx + cx)
-    v = torch.round(moved[:, 1] / z.clamp_min(1e-6) * fy + cy)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.round(moved[:, 0] / np.maximum(z, 1e-6) * fx + cx)
+        v = np.round(moved[:, 1] / np.maximum(z, 1e-6) * fy + cy)
     inside = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    out = torch.zeros(h * w, dtype=torch.float64, device=dev)
-    if bool(inside.any()):
-        index = (v[inside] * w + u[inside]).long()
-        out.scatter_reduce_(0, index, 1.0 / z[inside], reduce="amax", include_self=True)
+    out = np.zeros(h * w)
+    np.maximum.at(out, (v[inside] * w + u[inside]).astype(np.int64), 1.0 / z[inside])
     filled = out > 0
-    fill = out[filled].median() if bool(filled.any()) else disp.median()
-    return (torch.where(filled, out, fill).reshape(h, w).to(disparity.dtype),
-            filled.reshape(h, w).to(disparity.dtype))
+    fill = _lower_median(out[filled]) if filled.any() else _lower_median(disp.ravel())
+    return np.where(filled, out, fill).reshape(h, w), filled.reshape(h, w).astype(np.float64)
+
+
+def _lower_median(values: np.ndarray) -> float:
+    """The lower of the two middle values for an even count (as torch's median: a value that occurs)."""
+    return float(np.partition(values, (values.size - 1) // 2)[(values.size - 1) // 2])
 
 
 def _holds(res: motion.MotionResult, cells: int) -> bool:
     """Tracking's checks of an alignment: solved, finite, on enough of the grid and with a small enough residual."""
     return (res.ok and res.weight >= TRACK_MIN_SHARE * cells and res.rms <= TRACK_MAX_RMS
-            and bool(torch.isfinite(res.pose).all()))
+            and bool(np.isfinite(res.pose).all()))
 
 
 class Tracker:
@@ -119,7 +132,7 @@ class Tracker:
         self.params = params
         self.relocalise = relocalise_params
         self.relocalised = 0  # frames whose pose came from a PnP start or PnP alone (_relocalise)
-        self._ref_features: tuple[Reference, relocalise.Features] | None = None  # the reference's ORB features
+        self._ref_features: tuple[Reference, pnp.Features] | None = None  # the reference's ORB features
         # A frame was not tracked (a lost view, a whip pan) and no frame since was held by its flow alone (more
         # than track_below_share of the grid): the constant-velocity prediction is a guess, and flow started from
         # it can settle on a wrong pose that still passes the checks (the synthetic orbit after a 20-frame blank:
@@ -138,7 +151,7 @@ class Tracker:
         self._keyframes: list[int] = []  # seqs of the last keyframes tracking saw (promote_after + 1)
         self._ref_small: np.ndarray | None = None
         self._history: list[Tracked] = []  # the last two tracked frames (constant-velocity prediction)
-        self._promoted: dict[int, torch.Tensor] = {}  # keyframe seq -> world_from_cam tracking gave it
+        self._promoted: dict[int, np.ndarray] = {}  # keyframe seq -> world_from_cam tracking gave it
         self._origin: tuple[np.ndarray, np.ndarray] | None = None  # first frame before the map: small grey, K
         self._origin_flow: np.ndarray | None = None  # the last flow from it (DIS's start for the next frame)
 
@@ -146,6 +159,7 @@ class Tracker:
         """Mapping's newest keyframe. Tracking uses it unless it holds a carried-over reference and ``ref`` is
         older than the keyframe before the newest one tracking has seen (mapping is that far behind); then the
         carried-over reference is corrected by what mapping found for ``ref`` (:meth:`_correct`)."""
+        ref = ref.on_host()
         self._mapped = ref
         behind = self._head is not None and ref.seq < self._head.seq
         if not behind:
@@ -172,7 +186,7 @@ class Tracker:
         previous = None if head.previous is None else (head.previous[0], se3.orthonormalize(fix @ head.previous[1]))
         disparity, known = head.disparity, head.known
         fresh, fresh_known = propagate_disparity(ref.pose, pose, ref.disparity, ref.intrinsics)
-        if known is None or float(fresh_known.mean()) >= 0.8 * float(known.mean()):
+        if known is None or float(fresh_known.mean()) >= 0.8 * float(np.mean(known)):
             disparity, known = fresh, fresh_known
         self._head = head._replace(pose=pose, disparity=disparity, known=known, previous=previous,
                                    intrinsics=ref.intrinsics)
@@ -187,10 +201,11 @@ class Tracker:
         if not self._keyframes or self._keyframes[-1] != seq:
             self._keyframes = (self._keyframes + [seq])[-(self.promote_after + 1):]
 
-    def promote(self, seq: int, stamp: int, image: np.ndarray, pose: torch.Tensor) -> None:
+    def promote(self, seq: int, stamp: int, image: np.ndarray, pose) -> None:
         """Keyframe ``seq`` was tracked to ``pose`` (``image``: (H, W) grey, working resolution). When mapping
         does not yet hold the keyframe before it, it becomes the reference, with the current reference's depth
         carried over; otherwise mapping's reference stays (it is at most one keyframe back, and refined)."""
+        pose = as_numpy(pose)
         self.keyframe_seen(seq)
         self._promoted[seq] = pose
         if len(self._promoted) > MAX_PROMOTED:
@@ -226,15 +241,15 @@ class Tracker:
         if self._origin is None:  # later frames are resized to its size (frames arrive at half the working size)
             self._origin = (grey, np.asarray(intrinsics, np.float64))
             self._origin_flow = None
-            return Tracked(seq, stamp, torch.eye(4, dtype=torch.float64), -1, False)
+            return Tracked(seq, stamp, np.eye(4), -1, False)
         small, k = self._origin
         size = (small.shape[1], small.shape[0])
         if grey.shape[:2] != small.shape:
             grey = cv2.resize(grey, size, interpolation=cv2.INTER_AREA if grey.shape[1] > size[0] else cv2.INTER_LINEAR)
         ft = core_flow.flow_targets(small, grey, self.flow, self._origin_flow)
         self._origin_flow = ft.flow
-        pose = torch.eye(4, dtype=torch.float64)
-        pose[:3, :3] = torch.from_numpy(bearing_rotation(ft.target, ft.confidence, k, self.flow.grid)).T
+        pose = np.eye(4)
+        pose[:3, :3] = bearing_rotation(ft.target, ft.confidence, k, self.flow.grid).T
         return Tracked(seq, stamp, pose, -1, False)
 
     def reset(self) -> None:
@@ -246,7 +261,7 @@ class Tracker:
         self._promoted = {}
         self.lost = False
 
-    def predict(self, stamp: int) -> torch.Tensor:
+    def predict(self, stamp: int) -> np.ndarray:
         """Constant-velocity world_from_cam at time ``stamp``: from the last two tracked frames while tracking
         holds, else from the motion between the reference and the keyframe before it (mapping's estimate)."""
         ref = self.reference
@@ -271,7 +286,7 @@ class Tracker:
             grey = cv2.resize(grey, size, interpolation=cv2.INTER_AREA if grey.shape[1] > size[0] else cv2.INTER_LINEAR)
         guess = self.predict(stamp)
         res, ft, measured = self._align(guess, grey)
-        cells = ref.disparity.numel()
+        cells = ref.disparity.size
         below = self.relocalise.track_below_share
         if below > 0 and self.lost:
             out = self._relocalise(seq, stamp, grey, res, ft, measured)
@@ -284,7 +299,7 @@ class Tracker:
         pose = res.pose if ok else guess
         # the flow goes with the pose: mapping can solve the frame again against the reference's refined depth
         # without a flow of its own (frames.FramePoses.align)
-        out = Tracked(seq, stamp, pose, ref.seq, ok, torch.from_numpy(ft.target), measured)
+        out = Tracked(seq, stamp, pose, ref.seq, ok, ft.target, measured)
         self._history = (self._history + [out])[-2:]
         self.lost = below > 0 and (self.lost or not ok) and not (ok and res.weight >= below * cells)
         return out
@@ -297,13 +312,13 @@ class Tracker:
         PnP pose is the frame's, with no flow for mapping to solve it again by (the synthetic orbit 31 frames after
         its reference, after a blank: PnP 0.7 deg off, its flow's alignment 6 deg). None: PnP found no pose."""
         ref = self.reference
-        scale, cells = self.params.flow_downscale, ref.disparity.numel()
+        scale, cells = self.params.flow_downscale, ref.disparity.size
         if self._ref_features is None or self._ref_features[0] is not ref:
-            self._ref_features = (ref, relocalise.orb_features(ref.image, self.relocalise))
+            self._ref_features = (ref, pnp.orb_features(ref.image, self.relocalise))
         # a carried-over reference's filled-in cells hold the median disparity, not a point: left out (0)
         disparity = ref.disparity if ref.known is None else ref.disparity * ref.known
-        found = relocalise.pose_from_features(self._ref_features[1], ref.pose, disparity, ref.intrinsics,
-                                              relocalise.orb_features(grey, self.relocalise, scale), self.relocalise)
+        found = pnp.pose_from_features(self._ref_features[1], ref.pose, disparity, ref.intrinsics,
+                                       pnp.orb_features(grey, self.relocalise, scale), self.relocalise)
         if found is None:
             return None
         again = self._align(found.pose, grey)
@@ -317,22 +332,21 @@ class Tracker:
             trusted = float(np.linalg.norm(flows[0] - flows[1], axis=-1).mean()) * scale / GRID <= 1.0  # grid px
         if trusted:
             self.relocalised += int(from_pnp)
-            return Tracked(seq, stamp, res.pose, ref.seq, True, torch.from_numpy(ft.target), measured)
+            return Tracked(seq, stamp, res.pose, ref.seq, True, ft.target, measured)
         self.relocalised += 1
         return Tracked(seq, stamp, found.pose, ref.seq, True)
 
-    def _align(self, guess: torch.Tensor, grey: np.ndarray):
+    def _align(self, guess: np.ndarray, grey: np.ndarray):
         """Frame ``grey`` (at the reference's small size) aligned to the reference from ``guess``: DIS started
         from the flow ``guess`` induces. Returns (motion result, flow targets, their measured confidence)."""
         ref, small = self.reference, self._ref_small
         scale = self.params.flow_downscale
         init = induced_flow_field(ref.pose, guess, ref.disparity, ref.intrinsics, GRID // scale)
         ft = core_flow.flow_targets(small, grey, self.flow, init)
-        measured = torch.from_numpy((ft.confidence * core_flow.photometric_agreement(small, grey, ft.target, self.flow.grid))
-                                    .astype(np.float32))
+        measured = (ft.confidence * core_flow.photometric_agreement(small, grey, ft.target, self.flow.grid)
+                    ).astype(np.float32)
         # a carried-over depth says nothing where no point landed; the flow there is still good against a mapped one
-        confidence = measured if ref.known is None else measured * ref.known.cpu().to(torch.float32)
-        target = torch.from_numpy(ft.target)[None].to(ref.pose.device)
-        conf = confidence[None].to(ref.pose.device)
-        res = motion.align(guess, ref.pose[None], ref.disparity[None], target, conf, ref.intrinsics, self.params)
+        confidence = measured if ref.known is None else measured * ref.known.astype(np.float32)
+        res = motion.align(guess, ref.pose[None], ref.disparity[None], ft.target[None], confidence[None],
+                           ref.intrinsics, self.params)
         return res, ft, measured
