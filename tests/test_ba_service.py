@@ -73,8 +73,12 @@ def test_the_final_graph_goes_out_before_the_frames_are_solved_again():
     assert [type(m) for _, m in state.final_outputs] == [Graph, Intrinsics, Poses, Eos]
 
 
-def test_stream_over_zenoh(unix_endpoint):
+def test_stream_over_zenoh(unix_endpoint, monkeypatch):
     cfg = _settings()
+    # ba gives its freed heap back once the settling BA is done (the mapstore exports meanwhile) and again before
+    # its EOS says the stream is done: recorded in publish order
+    order: list[str] = []
+    monkeypatch.setattr("services.common.lifecycle.release_free_memory", lambda: order.append("released") or True)
     world, msgs = synth_stream(n_frames=40, rendered=17, every=4, stream=STREAM, width=256)
     state = service.build_state(cfg)
     stop = threading.Event()
@@ -87,6 +91,14 @@ def test_stream_over_zenoh(unix_endpoint):
 
     with Bus(BusSettings(listen=[unix_endpoint]), "ba") as ba_bus, \
             Bus(BusSettings(connect=[unix_endpoint]), "tester") as bus:
+        publish = ba_bus.publish
+
+        def recording(key, msg, *args, **kwargs):
+            if (isinstance(msg, Graph) and msg.final) or (isinstance(msg, Eos) and msg.stage == "ba"):
+                order.append(type(msg).__name__)
+            return publish(key, msg, *args, **kwargs)
+
+        ba_bus.publish = recording
         worker = threading.Thread(target=service.run, args=(cfg, ba_bus, stop, state), daemon=True)
         worker.start()
         wait_until(lambda: "ba" in bus.alive(timeout=0.2), 10, "the ba service to be alive")
@@ -122,6 +134,8 @@ def test_stream_over_zenoh(unix_endpoint):
     g = got[final_graph]
     assert g.disparities.shape == (5, 24, 32) and g.width == 256 and g.height == 192
     assert len(poses) >= 2
+    end = order[order.index("Graph"):]
+    assert end == ["Graph", "released", "released", "Eos"], order
 
 
 def _encode_unchecked(msg) -> bytes:
