@@ -4,6 +4,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 ARK_MODES = ("centred", "paper")  # RobustParams.ark_mode
+GRID = 8  # working pixels per grid cell: BA works on the 1/8 grid (docs/CONVENTIONS.md)
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,7 @@ from typing import NamedTuple
 
 import torch
 
-from services.ba.core.projective_numpy import MIN_DEPTH  # noqa: F401 — one threshold for both
+from services.ba.core.projective_numpy import MIN_DEPTH  # one threshold for both layouts
 
 
 class Reprojection(NamedTuple):

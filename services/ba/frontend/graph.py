@@ -11,14 +11,13 @@ import torch
 
 from services.ba.core import flow as core_flow
 from services.ba.core.ba import BAProblem, BAResult, BAState, run_ba
-from services.ba.core.params import BAParams, FlowParams
+from services.ba.core.params import GRID, BAParams, FlowParams
 from services.ba.core.projective_numpy import induced_flow_field
 from services.ba.frontend.edges import temporal_pairs
 from services.common.camera import scale_intrinsics
 from services.common.image_texture import texture as image_texture
 
 logger = logging.getLogger(__name__)
-GRID = 8  # working pixels per grid cell (docs/CONVENTIONS.md)
 STILL_STEP = 0.01  # keyframe steps below this x the scene's median depth are never refused as jumps (_jumped)
 
 

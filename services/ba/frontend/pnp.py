@@ -19,10 +19,9 @@ import cv2
 import numpy as np
 
 from services.ba.core.host_arrays import as_numpy
+from services.ba.core.params import GRID
 from services.ba.frontend.params import RelocaliseParams
 from services.common.camera import scale_intrinsics
-
-GRID = 8  # working pixels per grid cell (docs/CONVENTIONS.md)
 
 
 class Relocalised(NamedTuple):

@@ -29,13 +29,11 @@ import numpy as np
 from services.ba.core import flow as core_flow
 from services.ba.core import se3_numpy as se3
 from services.ba.core.host_arrays import as_numpy
-from services.ba.core.params import FlowParams
+from services.ba.core.params import GRID, FlowParams
 from services.ba.core.projective_numpy import induced_flow_field
 from services.ba.frontend import motion, pnp
 from services.ba.frontend.params import MotionParams, RelocaliseParams
 from services.ba.frontend.rotation import bearing_rotation
-
-GRID = 8  # working pixels per grid cell (docs/CONVENTIONS.md)
 
 
 class Reference(NamedTuple):
