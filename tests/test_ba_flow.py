@@ -121,10 +121,12 @@ def test_settings_carry_the_patch_stride_to_mapping_and_tracking(monkeypatch):
 
 
 def test_flow_parameters_for_a_bare_pair_take_the_dense_patch_stride():
-    params = FlowParams()
+    from services.ba.settings import BaSettings
+
+    params = BaSettings(flow_low_texture_patch_stride=1).flow_params()
     assert params.for_texture(params.low_texture_below) is params  # enough to see: the preset's patches
     assert params.for_texture(params.low_texture_below - 0.1).patch_stride == params.low_texture_patch_stride == 1
-    assert FlowParams(low_texture_patch_stride=None).for_texture(0.0).patch_stride is None
+    assert FlowParams().for_texture(0.0) == FlowParams()  # off by default: a bare person in view is followed
 
 
 @pytest.mark.parametrize("name, dense", [("rot1", False), ("low_texture", True)])
@@ -139,7 +141,7 @@ def test_keyframe_edges_of_bare_walls_are_flowed_with_dense_patches(name, dense)
 
     world = profile_world(profile(name, n=5), 256, 192)
     images = [cv2.cvtColor(world.render(seq).rgb, cv2.COLOR_RGB2GRAY) for seq in (0, 4)]
-    params = FlowParams()
+    params = FlowParams(low_texture_patch_stride=1)
     assert (min(map(texture, images)) < params.low_texture_below) == dense
     graph = KeyframeGraph(torch.tensor([40.0, 40.0, 15.5, 11.5], dtype=torch.float64), (24, 32), params,
                           torch.device("cpu"))

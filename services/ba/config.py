@@ -77,6 +77,10 @@ class BASettings(KmVipeSettings):
     flow_patch_stride: int | None = Field(FlowParams.patch_stride, ge=1)
     """OpenCV DIS patch stride of the flow targets and of tracking's flow (None: the preset's own, 3 for medium). 4
     saves a tenth of ba's time on driving footage but loses bare walls (``FlowParams.patch_stride``)."""
+    flow_low_texture_patch_stride: int | None = Field(FlowParams.low_texture_patch_stride, ge=1)
+    """DIS patch stride for keyframe pairs that show less than texture 7 (None: the same as every pair). 1 holds
+    bare walls (TartanAir hospital 1.5 → 1.0 % of path) but follows a bare object that fills the view, such as a
+    person right in front of the camera (``FlowParams.low_texture_patch_stride``)."""
     fb_sigma: float = 1.0
     """Forward-backward error (working px) where flow confidence is exp(-1/2)."""
 
@@ -97,7 +101,8 @@ class BASettings(KmVipeSettings):
 
     def flow_params(self) -> FlowParams:
         """Flow-target parameters."""
-        return FlowParams(preset=self.flow_preset, fb_sigma=self.fb_sigma, patch_stride=self.flow_patch_stride)
+        return FlowParams(preset=self.flow_preset, fb_sigma=self.fb_sigma, patch_stride=self.flow_patch_stride,
+                          low_texture_patch_stride=self.flow_low_texture_patch_stride)
 
     def torch_device(self) -> torch.device:
         """Resolve ``device`` (``auto`` picks CUDA when present)."""
