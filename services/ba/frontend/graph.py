@@ -151,7 +151,7 @@ class KeyframeGraph:
                 self.flow_params, grid=self.flow_params.grid // scale, fb_sigma=self.flow_params.fb_sigma / scale)
             if self.flow_preset is not None:  # a live keyframe's cheap flow
                 params = replace(params, preset=self.flow_preset)
-            else:  # bare walls get denser DIS patches (FlowParams.low_texture_below)
+            else:  # bare walls may get denser DIS patches (FlowParams.low_texture_patch_stride, off by default)
                 params = params.for_texture(min(self.texture(i), self.texture(j)))
             # both directions at once: the reverse edge is (almost) always asked for too (temporal edges come
             # in pairs), and its two flows are these
