@@ -153,3 +153,22 @@ def test_keyframe_edges_of_bare_walls_are_flowed_with_dense_patches(name, dense)
     preset_targets = pair_targets(*images, params)[0].target
     np.testing.assert_array_equal(got, dense_targets if dense else preset_targets)
     assert not np.array_equal(dense_targets, preset_targets)
+
+
+def test_with_the_dense_patch_rule_off_no_keyframe_texture_is_measured():
+    """Off by default: the graph's flows take the preset's patches and never pay for measuring the images."""
+    import torch
+
+    from services.ba.frontend.graph import KeyframeGraph
+    from services.synth.profiles import profile, profile_world
+
+    world = profile_world(profile("low_texture", n=5), 256, 192)
+    images = [cv2.cvtColor(world.render(seq).rgb, cv2.COLOR_RGB2GRAY) for seq in (0, 4)]
+    graph = KeyframeGraph(torch.tensor([40.0, 40.0, 15.5, 11.5], dtype=torch.float64), (24, 32), FlowParams(),
+                          torch.device("cpu"))
+    for seq, grey in zip((0, 4), images):
+        graph.append(seq, seq, grey, None, None, torch.eye(4, dtype=torch.float64),
+                     torch.ones(24, 32, dtype=torch.float64))
+    got = graph.targets(0, 1).target.numpy()
+    np.testing.assert_array_equal(got, pair_targets(*images, FlowParams())[0].target)
+    assert graph._texture == {}

@@ -103,7 +103,7 @@ class FramePoses:
             # ((x + 0.5)/grid - 0.5 with x the landing point at that resolution); fb_sigma is in its pixels
             # the keyframe's texture decides the patch stride (FlowParams.low_texture_below): the frame sees about
             # the same scene, and its own image comes at another size, where the measure reads differently
-            params = replace(graph.flow_params.for_texture(graph.texture(k)), grid=graph.flow_params.grid // scale,
+            params = replace(graph.for_texture(graph.flow_params, k), grid=graph.flow_params.grid // scale,
                              fb_sigma=graph.flow_params.fb_sigma / scale)
             keyframe = work if scale == 1 else cv2.resize(work, size, interpolation=cv2.INTER_AREA)
             image = frame.image if frame.image.shape[:2] == size[::-1] else cv2.resize(

@@ -151,8 +151,8 @@ class KeyframeGraph:
                 self.flow_params, grid=self.flow_params.grid // scale, fb_sigma=self.flow_params.fb_sigma / scale)
             if self.flow_preset is not None:  # a live keyframe's cheap flow
                 params = replace(params, preset=self.flow_preset)
-            else:  # bare walls may get denser DIS patches (FlowParams.low_texture_patch_stride, off by default)
-                params = params.for_texture(min(self.texture(i), self.texture(j)))
+            else:
+                params = self.for_texture(params, i, j)
             # both directions at once: the reverse edge is (almost) always asked for too (temporal edges come
             # in pairs), and its two flows are these
             there, back = core_flow.pair_targets(self._image(i), self._image(j), params, fwd, bwd)
@@ -169,6 +169,13 @@ class KeyframeGraph:
 
     def put_flows(self, flows: dict[tuple[int, int], Targets]) -> None:
         self._cache.update(flows)
+
+    def for_texture(self, params: FlowParams, *ks: int) -> FlowParams:
+        """``params`` for flows between keyframes ``ks`` (:meth:`FlowParams.for_texture` of the barer one): bare
+        walls may get denser DIS patches. Their texture is measured only when that rule is on (off by default)."""
+        if params.low_texture_patch_stride is None:
+            return params
+        return params.for_texture(min(self.texture(k) for k in ks))
 
     def texture(self, k: int) -> float:
         """How much keyframe ``k``'s working image shows (its flows' DIS patch stride, FlowParams.for_texture)."""
