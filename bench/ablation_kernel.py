@@ -163,7 +163,7 @@ def real_codes(frames: list, cache: Path, name: str) -> dict[int, np.ndarray]:
     codes: dict[int, np.ndarray] = {}
     for frame in tqdm(frames, unit="frame", desc=f"{name}: codes"):
         work = resize_to_working(frame.rgb, size)
-        pyr = multiscale_features(normalise_rgb(work, torch.device("cpu")), backbone, params.pyramid)
+        pyr = multiscale_features(normalise_rgb(work), backbone, params.pyramid)
         _, ready = queue.add(KeyframeOut(frame.index, work, None, pyr.features, None, {}))
         codes.update((kf.seq, c) for kf, c in ready)
     codes.update((kf.seq, c) for kf, c in queue.flush()[1])

@@ -82,7 +82,8 @@ def bench(args: argparse.Namespace) -> list[tuple[str, str, float]]:
             rows.append((runtime, f"scale {s:g} ({fmap.shape[2]}×{fmap.shape[3]} patches)", _median(ts)))
             total += _median(ts)
         rows.append((runtime, "pyramid total", total))
-        feats = torch.nn.functional.normalize(torch.randn(384, size.height // 8, size.width // 8), dim=0)
+        feats = np.random.default_rng(0).standard_normal((384, size.height // 8, size.width // 8), np.float32)
+        feats /= np.linalg.norm(feats, axis=0, keepdims=True)
     basis = fit_pca(feats.reshape(384, -1).T, 32, "bench")
     t = [time.perf_counter()]
     for _ in range(10):

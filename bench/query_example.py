@@ -26,7 +26,6 @@ from typing import Callable
 
 import cv2
 import numpy as np
-import torch
 from tqdm import tqdm  # a core dependency (the runner's progress bar)
 
 REPO = Path(__file__).resolve().parents[1]
@@ -73,29 +72,29 @@ class Features:
                                             threads=self.threads, int8=int8)
         return self._bbs[int8]
 
-    def _cached(self, key: str, make: Callable[[], torch.Tensor]) -> torch.Tensor:
+    def _cached(self, key: str, make: Callable[[], np.ndarray]) -> np.ndarray:
         if self.cache is None:
             return make()
         if not (path := self.cache / f"{key}.npy").exists():
             path.parent.mkdir(parents=True, exist_ok=True)
-            np.save(path, make().numpy())
-        return torch.from_numpy(np.load(path))
+            np.save(path, make())
+        return np.load(path)
 
-    def map_features(self, key: str, image: np.ndarray) -> torch.Tensor:
+    def map_features(self, key: str, image: np.ndarray) -> np.ndarray:
         """(C, h, w) as the features service computes a keyframe's (working size, pyramid, 1/8 grid)."""
         work = resize_to_working(image, working_size(*image.shape[:2]))
         scales = "_".join(f"{s:g}" for s in self.scales)
         name = f"{key}_map_{work.shape[0]}x{work.shape[1]}_s{scales}" + ("_int8" if self.int8_map else "")
         return self._cached(name, lambda: multiscale_features(
-            normalise_rgb(work), self.backbone(self.int8_map), PyramidParams(scales=self.scales)).features.float())
+            normalise_rgb(work), self.backbone(self.int8_map), PyramidParams(scales=self.scales)).features)
 
-    def query_features(self, key: str, image: np.ndarray) -> torch.Tensor:
+    def query_features(self, key: str, image: np.ndarray) -> np.ndarray:
         """(C, h, w) as the gateway computes an example image's (``fit_to_patches``, one backbone pass)."""
         img, _ = fit_to_patches(image, np.ones(image.shape[:2], bool), PATCH, EXAMPLE_MAX_SIDE)
-        return self._cached(f"{key}_query_{EXAMPLE_MAX_SIDE}", lambda: self.backbone()(normalise_rgb(img))[0].float())
+        return self._cached(f"{key}_query_{EXAMPLE_MAX_SIDE}", lambda: self.backbone()(normalise_rgb(img))[0])
 
 
-def region_queries(fi: int, image: np.ndarray, qfeat: torch.Tensor, target: int, group: str, mask: np.ndarray,
+def region_queries(fi: int, image: np.ndarray, qfeat: np.ndarray, target: int, group: str, mask: np.ndarray,
                    region: str) -> list[Query]:
     """The box query (the mask's bounding box) and the exact-mask query of one region, pooled as the gateway does."""
     ys, xs = np.nonzero(mask)
@@ -241,7 +240,6 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, help="also write every query's result and the tables here")
     args = ap.parse_args(argv)
     args.data, args.boxes = args.data.expanduser().resolve(), args.boxes.expanduser().resolve()
-    torch.set_num_threads(args.threads)
     feats = Features(args.threads, tuple(args.scales), None if args.no_cache else args.cache, args.int8)
     results = [run_dataset(n, args, feats) for n in (("adt", "kitti") if args.dataset == "both" else (args.dataset,))]
     for res in results:

@@ -7,7 +7,6 @@ from __future__ import annotations
 from typing import Callable, NamedTuple
 
 import numpy as np
-import torch
 
 from services.features.core.pca import fit_pca, project, sample_rows
 from services.mapstore.config import RegionParams
@@ -73,7 +72,7 @@ class Frame(NamedTuple):
     truth id per cell; ``in_map``: (h, w) bool cells that are map points; ``counted``: (h, w) bool cells scored."""
 
     name: str
-    features: torch.Tensor
+    features: np.ndarray
     cells: np.ndarray
     in_map: np.ndarray
     counted: np.ndarray
@@ -93,13 +92,13 @@ def map_scorer(frames: list[Frame], mode: str) -> Callable[[np.ndarray], np.ndar
     cells that are no map points. ``mode="pca"``: the product's path (K-d PCA basis fitted on the map cells, float16
     codes, ``ScoringIndex``); ``"raw"``: cosine with the full features (what PCA costs); ``"centred"``: NOT the
     product, a diagnostic: cosine of the codes z = V(f − μ) with V(t − μ) (PCA mean μ removed on both sides)."""
-    rows = torch.cat([f.features.reshape(f.features.shape[0], -1).T for f in frames])  # (N, C)
+    rows = np.concatenate([f.features.reshape(f.features.shape[0], -1).T for f in frames])  # (N, C)
     in_map = np.concatenate([f.in_map.ravel() for f in frames])
     if mode == "raw":
-        feats = torch.nn.functional.normalize(rows, dim=1).numpy()
+        feats = rows / np.linalg.norm(rows, axis=1, keepdims=True).clip(1e-12)
         return lambda q: np.where(in_map[None], np.asarray(q, np.float32) @ feats.T, np.nan)
-    gen = torch.Generator().manual_seed(0)
-    samples = torch.cat([sample_rows(f.features.reshape(f.features.shape[0], -1)[:, f.in_map.ravel()].T,
+    gen = np.random.default_rng(0)
+    samples = np.concatenate([sample_rows(f.features.reshape(f.features.shape[0], -1)[:, f.in_map.ravel()].T,
                                      PCA_SAMPLES, gen) for f in frames])
     basis = fit_pca(samples, min(PCA_K, rows.shape[1]), "bench")
     codes = np.concatenate([project(basis, f.features).reshape(-1, basis.components.shape[0]) for f in frames])

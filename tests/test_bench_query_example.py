@@ -101,7 +101,7 @@ def _synthetic_map(qe, noise: float = 0.05):
     frames = []
     for i, m in enumerate(ids):
         f = oracle_features(np.vectorize(vec_of.get)(m), vecs, noise, rng)  # (h, w, D)
-        feats = torch.from_numpy(f).permute(2, 0, 1).contiguous()
+        feats = np.ascontiguousarray(f.transpose(2, 0, 1))
         frames.append(qe.Frame(f"f{i}", feats, m, np.ones(m.shape, bool), np.ones(m.shape, bool)))
     groups = {0: "floor", 1: "chair", 2: "chair", 3: "table", 4: "table"}
     queries = [qe.Query(0, t, groups[t], "mask", pooled_feature(frames[0].features, ids[0] == t), str(t))

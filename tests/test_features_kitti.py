@@ -54,7 +54,8 @@ def features(backbone):
         if i not in cache:
             grey = _grey(i)
             work = resize_to_working(to_rgb(grey), working_size(*grey.shape))
-            cache[i] = (work[..., 0], multiscale_features(normalise_rgb(work), backbone, SCALES).features)
+            feats = multiscale_features(normalise_rgb(work), backbone, SCALES).features  # numpy, as the service
+            cache[i] = (work[..., 0], torch.from_numpy(feats))  # torch here for the test's own cosine/grid_sample
         return cache[i]
 
     return get

@@ -86,10 +86,10 @@ class _PositionBackbone:
     def __init__(self):
         self.calls = []
 
-    def __call__(self, x: torch.Tensor) -> torch.Tensor:
+    def __call__(self, x: np.ndarray) -> np.ndarray:
         self.calls.append(tuple(x.shape[2:]))
         h, w = x.shape[2] // 14, x.shape[3] // 14
-        out = torch.zeros(1, 2, h, w)
+        out = np.zeros((1, 2, h, w), np.float32)
         out[:, 0, :, : w // 2] = 1.0
         out[:, 1, :, w // 2 :] = 1.0
         return out
@@ -98,13 +98,13 @@ class _PositionBackbone:
 def test_pyramid_sizes_weights_and_blend():
     bb = _PositionBackbone()
     params = PyramidParams(scales=(2.0, 1.0, 0.5))
-    res = multiscale_features(torch.zeros(1, 3, 112, 224), bb, params)
+    res = multiscale_features(np.zeros((1, 3, 112, 224), np.float32), bb, params)
     assert bb.calls == [scaled_size(112, 224, s, 14) for s in params.scales]
     assert all(h % 14 == 0 and w % 14 == 0 for h, w in bb.calls)
     assert scale_weights(params.scales) == pytest.approx([2 / 3.5, 1 / 3.5, 0.5 / 3.5])
     f = res.features
     assert f.shape == (2, 14, 28)
-    assert torch.allclose(f.norm(dim=0), torch.ones(14, 28), atol=1e-5)
+    assert f.dtype == np.float32 and np.allclose(np.linalg.norm(f, axis=0), 1.0, atol=1e-5)
     assert f[0, :, 0].min() > 0.99 and f[1, :, -1].min() > 0.99  # far left / far right cells
     assert set(res.seconds_per_scale) == set(params.scales)
 
@@ -210,7 +210,7 @@ def test_refit_policy_keeps_90_percent_of_every_kitti_keyframe():
     ids, images = ids[::2], images[::2]  # every other keyframe keeps the test near a minute on 2 cores
     bb = load_backbone("dinov2-vits14-imgfocus", ModelStore(use_hf_cache=False), "cpu", runtime="onnx", threads=2)
     feats = [multiscale_features(normalise_rgb(im), bb, PyramidParams(scales=(1.0,))).features for im in images]
-    frozen = fit_pca(torch.cat([f.reshape(384, -1).T for f in feats[:5]]), 32, "dinov2_vits14")
+    frozen = fit_pca(np.concatenate([f.reshape(384, -1).T for f in feats[:5]]), 32, "dinov2_vits14")
     frozen_kept = [retained_variance(frozen, f) for f in feats[5:]]
     fitter = PcaFitter(PcaParams(32, 5, refit_below=0.9, refit_window=5), "dinov2_vits14")
     coded, held_out = [], 0

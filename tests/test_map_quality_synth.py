@@ -13,7 +13,6 @@ import sys
 
 import numpy as np
 import pytest
-import torch
 
 from services.common.errors import ConfigError
 from services.evaluation import map_quality as mq
@@ -40,12 +39,12 @@ def test_spec_parses_like_ingest_and_refuses_unknown_options():
 def test_oracle_backbone_returns_the_label_vector_of_each_cell():
     oracle = SynthOracleBackbone(OracleParams(SOURCE, seed=5, dim=16, noise=0.0))
     oracle.set_frame(7)
-    feats = oracle(torch.zeros(1, 3, 96, 128))  # patch 8: the 1/8 grid of a 128x96 working image
-    assert feats.shape == (1, 16, 12, 16) and feats.dtype == torch.float32
+    feats = oracle(np.zeros((1, 3, 96, 128), np.float32))  # patch 8: the 1/8 grid of a 128x96 working image
+    assert feats.shape == (1, 16, 12, 16) and feats.dtype == np.float32
     labels = SynthWorld(config_from_spec(SOURCE)).render(7).labels[3::8, 3::8]  # cell centres 8c + 3.5 → +4 px
     labels_at_centres = SynthWorld(config_from_spec(SOURCE)).render(7).labels[4::8, 4::8]
     vectors = label_vectors(len(LABEL_NAMES), 16, 5)
-    np.testing.assert_allclose(feats[0].permute(1, 2, 0).numpy(), vectors[labels_at_centres], atol=1e-6)
+    np.testing.assert_allclose(feats[0].transpose(1, 2, 0), vectors[labels_at_centres], atol=1e-6)
     assert (labels == labels_at_centres).mean() > 0.9  # sanity: the grid samples the same surfaces
     with pytest.raises(ValueError):
         oracle.set_frame(20)

@@ -187,9 +187,8 @@ def test_posebook_newer_poses_win_and_tum_lines():
 
 
 # -- query by example --------------------------------------------------------------------------------------
-@pytest.mark.parametrize("device", DEVICES)
-def test_pooled_feature_averages_the_masked_patches(device):
-    fmap = torch.zeros(2, 4, 4, device=device)
+def test_pooled_feature_averages_the_masked_patches():
+    fmap = np.zeros((2, 4, 4), np.float32)  # backbones give numpy maps, wherever they ran
     fmap[0, :, :2] = 1.0  # left half: (1, 0)
     fmap[1, :, 2:] = 1.0  # right half: (0, 1)
     left = np.zeros((56, 56), bool)
@@ -199,6 +198,15 @@ def test_pooled_feature_averages_the_masked_patches(device):
     np.testing.assert_allclose(pooled_feature(fmap, middle), [np.sqrt(0.5)] * 2, atol=1e-6)
     with pytest.raises(ValueError, match="covers no pixel"):
         box_mask(56, 56, (60, 60, 70, 70))
+
+
+def test_pooled_weights_are_torch_adaptive_average_pooling():
+    """The mask's area fractions per patch, for a mask whose size is no multiple of the grid's."""
+    rng = np.random.default_rng(0)
+    fmap, mask = rng.standard_normal((6, 5, 7)).astype(np.float32), rng.random((37, 45)) > 0.6
+    weights = torch.nn.functional.adaptive_avg_pool2d(torch.from_numpy(mask.astype(np.float32))[None, None], (5, 7))[0, 0]
+    expected = torch.nn.functional.normalize((torch.from_numpy(fmap) * weights).sum(dim=(1, 2)), dim=0).numpy()
+    np.testing.assert_allclose(pooled_feature(fmap, mask), expected, atol=1e-5)
 
 
 def test_fit_to_patches_keeps_thin_regions():

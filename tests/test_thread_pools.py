@@ -6,7 +6,8 @@ import os
 import subprocess
 import sys
 
-PROBE = ("import sys, os; import services.features.service; "
+# ba solves in torch (features on the CPU does not load it)
+PROBE = ("import sys, os; import services.ba.service; "
          "print(os.environ.get('OMP_WAIT_POLICY'), 'torch' in sys.modules)")
 
 

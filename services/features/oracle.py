@@ -17,7 +17,6 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-import torch
 
 from ..synth import LABEL_NAMES, SynthWorld, label_vectors, oracle_features
 from ..synth.spec import config_from_spec
@@ -56,6 +55,7 @@ class SynthOracleBackbone:
     """
 
     runtime = "oracle"
+    device_type = "cpu"
 
     def __init__(self, params: OracleParams):
         self.params = params
@@ -63,7 +63,6 @@ class SynthOracleBackbone:
         self.vectors = label_vectors(len(LABEL_NAMES), params.dim, params.seed)  # (L, dim) unit rows
         self.name, self.output_space = ORACLE_BACKBONE, params.output_space
         self.patch_size, self.dim, self.n_prefix = params.patch_size, params.dim, 0
-        self.device = torch.device("cpu")
         self._seq: int | None = None
         self._labels: tuple[int, np.ndarray] | None = None  # (seq, (H0, W0) int32 label map) of the last render
 
@@ -79,7 +78,7 @@ class SynthOracleBackbone:
             self._labels = (seq, self.world.render(seq).labels)
         return self._labels[1]
 
-    def __call__(self, images: torch.Tensor) -> torch.Tensor:
+    def __call__(self, images: np.ndarray) -> np.ndarray:
         if images.ndim != 4 or images.shape[1] != 3:
             raise ValueError(f"backbone input must be (B, 3, H, W), got {tuple(images.shape)}")
         if self._seq is None:
@@ -90,8 +89,8 @@ class SynthOracleBackbone:
         cell_labels = sample_patch_labels(self.labels(self._seq), h, w)
         rng = np.random.default_rng([self.params.seed, self._seq, h, w])
         feats = oracle_features(cell_labels, self.vectors, self.params.noise, rng)  # (h, w, dim)
-        out = torch.from_numpy(np.ascontiguousarray(feats.transpose(2, 0, 1)))[None]
-        return out.expand(images.shape[0], -1, -1, -1).to(images.device)
+        out = np.ascontiguousarray(feats.transpose(2, 0, 1), dtype=np.float32)[None]
+        return np.repeat(out, images.shape[0], axis=0)
 
 
 def sample_patch_labels(labels: np.ndarray, h: int, w: int) -> np.ndarray:

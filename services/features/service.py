@@ -12,6 +12,7 @@ latest without a selector), so a consumer that missed one (late join, restart, l
 from __future__ import annotations
 
 import logging
+import sys
 import threading
 import time
 from collections import deque
@@ -19,12 +20,10 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-import torch
 
 from ..common import keys
 from ..common.bus import Bus, Inbox
 from ..common.models.backbones import normalise_rgb
-from ..common.device import resolve_device
 from ..common.lifecycle import release_free_memory
 from ..common.models.loaders import load_backbone, load_depth_model
 from ..common.models.store import ModelStore
@@ -85,7 +84,6 @@ class FeaturesState:
 def load_models(cfg: FeaturesSettings) -> tuple:
     """(backbone, depth model or None) named in the settings, loaded once per process and shared by every stream
     (one clear ModelError if one is missing)."""
-    torch.set_num_threads(cfg.threads)
     store = ModelStore(cfg.models_dir)
     if cfg.backbone == ORACLE_BACKBONE:  # test double: exact synthetic-world labels instead of a model
         backbone = SynthOracleBackbone(cfg.oracle_params())
@@ -95,6 +93,8 @@ def load_models(cfg: FeaturesSettings) -> tuple:
                                   cfg.runtime_spinning, cfg.runtime_int8),
             cfg.semantics_nice)
     depth = load_depth_model(cfg.depth_model, store, cfg.device, cfg.half) if cfg.depth_model else None
+    if "torch" in sys.modules:  # a model runs in torch (the CPU path, onnxruntime and the oracle, never loads it)
+        sys.modules["torch"].set_num_threads(cfg.threads)
     # parsing, cutting and compiling the ONNX graph leaves ~250 MB of freed heap the allocator would keep for good
     # (DINOv2 ViT-S/14: 765 -> 503 MB)
     release_free_memory()
@@ -104,9 +104,8 @@ def load_models(cfg: FeaturesSettings) -> tuple:
 def build_state(cfg: FeaturesSettings, models: tuple | None = None) -> FeaturesState:
     """One stream's state around ``models`` (:func:`load_models`; loaded here when not given)."""
     backbone, depth = models if models is not None else load_models(cfg)
-    device = resolve_device(cfg.device)
-    core = FeaturesCore(cfg.params(getattr(backbone, "patch_size", 14), device.type == "cuda"), backbone,
-                        lambda image: normalise_rgb(image, device), depth)
+    on_cuda = getattr(backbone, "device_type", "cpu") == "cuda"
+    core = FeaturesCore(cfg.params(getattr(backbone, "patch_size", 14), on_cuda), backbone, normalise_rgb, depth)
     semantics = SemanticsWorker(core, CodeQueue(core.params.pca, backbone.output_space), cfg.semantics_nice, cfg.stream)
     return FeaturesState(core, semantics, cfg.stream)
 

@@ -138,7 +138,7 @@ class Gateway:
 
     def query_example(self, stream: str, image: np.ndarray, box=None, mask=None, opts=QueryOptions()) -> Answer:
         """Image (H, W, 3) uint8 RGB and a pixel box (x0, y0, x1, y1) or (H, W) bool mask → the answer."""
-        # torch, like the backbone: a gateway never asked for an example starts and runs without it
+        # the backbone's runtime loads with its first example: a gateway never asked for one runs without it
         from ..common.models.backbones import normalise_rgb
         from .core.example import box_mask, fit_to_patches, pooled_feature
 
@@ -151,7 +151,7 @@ class Gateway:
         if mask is None:
             mask = box_mask(image.shape[0], image.shape[1], box)
         img, m = fit_to_patches(image, mask, backbone.patch_size, self.cfg.example_max_side)
-        feats = backbone(normalise_rgb(img, backbone.device))[0]  # (C, h, w)
+        feats = backbone(normalise_rgb(img))[0]  # (C, h, w)
         return self.ask(stream, pooled_feature(feats, m)[None], space, opts)
 
     def backbone(self):

@@ -3,27 +3,31 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
-import torch
-
-from ..device import resolve_device
-
+from ..device import device_type, resolve_device
 from ..errors import ModelError, missing_models_extra
 from . import imgfocus
-from .backbones import OnnxDinoBackbone, TorchDinoBackbone
-from .depth import MetricDepthModel
+from .backbones import OnnxDinoBackbone
 from .registry import ModelEntry, ModelKind, get_entry
 from .store import ModelStore, install_hint
-from .text import ClipTextEncoder, Talk2DinoHead, load_talk2dino_head
+
+if TYPE_CHECKING:  # torch is imported where a model runs in it, never for onnxruntime's (docs/ARCHITECTURE.md)
+    import torch
+
+    from .depth import MetricDepthModel
+    from .text import ClipTextEncoder, Talk2DinoHead
+    from .torch_backbones import TorchDinoBackbone
 
 log = logging.getLogger(__name__)
 
 Runtime = Literal["auto", "onnx", "torch"]
 
 
-def compute_dtype(device: torch.device, half: bool = True) -> torch.dtype:
+def compute_dtype(device: "torch.device", half: bool = True) -> "torch.dtype":
     """bf16 (or fp16 where bf16 is unsupported) on CUDA when ``half``; float32 on CPU."""
+    import torch
+
     if device.type != "cuda" or not half:
         return torch.float32
     return torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
@@ -69,19 +73,31 @@ def load_backbone(
     weights (:func:`.imgfocus.int8_weights`; torch, on CUDA in bf16/fp16, ignores it).
     """
     entry = _entry(name, ModelKind.BACKBONE)
-    dev = resolve_device(device)
     loc = store.locate(entry)
     if entry.loader == "imgfocus_dinov2":
-        use_onnx = runtime == "onnx" or (runtime == "auto" and dev.type == "cpu")
+        use_onnx = runtime == "onnx" or (runtime == "auto" and device_type(device) == "cpu")
         proto = imgfocus.load_onnx(loc.path, entry.name)
         if use_onnx:
             return _imgfocus_onnx(proto, entry, threads, spinning, int8)
+        dev = _torch_device(device, threads)
         return _imgfocus_torch(proto, entry, dev, compute_dtype(dev, half))
     if entry.loader == "hf_dinov2":
+        from .torch_backbones import TorchDinoBackbone
+
         tf = _transformers(entry)
         model = _from_pretrained(tf.AutoModel, loc.path, entry, store)
+        dev = _torch_device(device, threads)
         return TorchDinoBackbone(model, entry.name, entry.output_space, dev, compute_dtype(dev, half))
     raise ModelError(f"model '{entry.name}': unknown backbone loader {entry.loader!r}")
+
+
+def _torch_device(device: str, threads: int = 0) -> "torch.device":
+    """The device a torch model runs on; ``threads`` > 0 caps torch's CPU threads (the process's, once it loads)."""
+    import torch
+
+    if threads > 0:
+        torch.set_num_threads(threads)
+    return resolve_device(device)
 
 
 def _imgfocus_onnx(proto, entry: ModelEntry, threads: int, spinning: bool = False,
@@ -115,7 +131,11 @@ def _weights(graph, entry: ModelEntry, int8: bool) -> bytes:
     return graph.SerializeToString()
 
 
-def _imgfocus_torch(proto, entry: ModelEntry, dev: torch.device, dtype: torch.dtype) -> TorchDinoBackbone:
+def _imgfocus_torch(proto, entry: ModelEntry, dev: "torch.device", dtype: "torch.dtype") -> "TorchDinoBackbone":
+    import torch
+
+    from .torch_backbones import TorchDinoBackbone
+
     tf = _transformers(entry)
     model = tf.Dinov2Model(tf.Dinov2Config(**imgfocus.DINOV2_VITS14))
     state = imgfocus.dinov2_state_dict(proto)
@@ -128,8 +148,10 @@ def _imgfocus_torch(proto, entry: ModelEntry, dev: torch.device, dtype: torch.dt
 
 
 # -- text -----------------------------------------------------------------------------------------------------
-def load_text_encoder(name: str, store: ModelStore, device: str = "auto") -> ClipTextEncoder:
+def load_text_encoder(name: str, store: ModelStore, device: str = "auto") -> "ClipTextEncoder":
     """CLIP text tower + tokenizer of registry entry ``name``."""
+    from .text import ClipTextEncoder
+
     entry = _entry(name, ModelKind.TEXT)
     loc = store.locate(entry)
     tf = _transformers(entry)
@@ -138,16 +160,20 @@ def load_text_encoder(name: str, store: ModelStore, device: str = "auto") -> Cli
     return ClipTextEncoder(model, tokenizer, entry.name, entry.output_space, resolve_device(device))
 
 
-def load_text_head(name: str, store: ModelStore, device: str = "auto") -> Talk2DinoHead:
+def load_text_head(name: str, store: ModelStore, device: str = "auto") -> "Talk2DinoHead":
     """Talk2DINO head of registry entry ``name`` (maps ``entry.input_space`` → ``entry.output_space``)."""
+    from .text import load_talk2dino_head
+
     entry = _entry(name, ModelKind.TEXT_HEAD)
     loc = store.locate(entry)
     return load_talk2dino_head(loc.path, entry.name, resolve_device(device))
 
 
 # -- depth ----------------------------------------------------------------------------------------------------
-def load_depth_model(name: str, store: ModelStore, device: str = "auto", half: bool = True) -> MetricDepthModel:
+def load_depth_model(name: str, store: ModelStore, device: str = "auto", half: bool = True) -> "MetricDepthModel":
     """Depth Anything V2 metric model of registry entry ``name``."""
+    from .depth import MetricDepthModel
+
     entry = _entry(name, ModelKind.DEPTH)
     loc = store.locate(entry)
     tf = _transformers(entry)

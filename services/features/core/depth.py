@@ -9,12 +9,11 @@ from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
-import torch
-from torch.nn import functional as F
 
 from .geometry import GRID_STRIDE
+from .resample import resize_bilinear
 
-DepthModel = Callable[[torch.Tensor], torch.Tensor]
+DepthModel = Callable[[np.ndarray], np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -59,7 +58,7 @@ def sensor_disparity(depth_m: np.ndarray, working_hw: tuple[int, int], params: D
 
 
 def model_disparity(
-    image: torch.Tensor, depth_model: DepthModel, patch_size: int, params: DepthParams = DepthParams()
+    image: np.ndarray, depth_model: DepthModel, patch_size: int, params: DepthParams = DepthParams()
 ) -> np.ndarray:
     """Metric depth model on (1, 3, H, W) normalised working image → (H/8, W/8) float32 disparity (1/m)."""
     if image.ndim != 4 or image.shape[:2] != (1, 3):
@@ -67,7 +66,6 @@ def model_disparity(
     H, W = image.shape[2:]
     s = params.model_short_side / min(H, W)
     size = (max(patch_size, round(H * s / patch_size) * patch_size), max(patch_size, round(W * s / patch_size) * patch_size))
-    x = F.interpolate(image, size=size, mode="bilinear", align_corners=False, antialias=s < 1.0)
-    depth = depth_model(x)[0].float()
-    depth = F.interpolate(depth[None, None], size=(H, W), mode="bilinear", align_corners=False)[0, 0]
-    return _cell_mean_disparity(depth.cpu().numpy(), (H // GRID_STRIDE, W // GRID_STRIDE), params)
+    x = resize_bilinear(image, size, antialias=s < 1.0)
+    depth = resize_bilinear(np.asarray(depth_model(x), np.float32)[0], (H, W))
+    return _cell_mean_disparity(depth, (H // GRID_STRIDE, W // GRID_STRIDE), params)

@@ -17,7 +17,6 @@ from dataclasses import dataclass
 from typing import Literal, NamedTuple
 
 import numpy as np
-import torch
 
 log = logging.getLogger(__name__)
 
@@ -69,15 +68,15 @@ class Moments(NamedTuple):
 
     count: int
     """N."""
-    total: torch.Tensor
+    total: np.ndarray
     """(C,) float64 Σx."""
-    outer: torch.Tensor
+    outer: np.ndarray
     """(C, C) float64 Σxxᵀ."""
 
 
-def _as_rows(features: torch.Tensor | np.ndarray) -> torch.Tensor:
-    """(C, h, w) map or (N, C) rows → (N, C) float32 tensor."""
-    f = torch.as_tensor(features).float()
+def _as_rows(features: np.ndarray) -> np.ndarray:
+    """(C, h, w) map or (N, C) rows (any array, a CPU tensor too) → (N, C) float32 array."""
+    f = np.asarray(features, dtype=np.float32)
     if f.ndim == 3:
         return f.reshape(f.shape[0], -1).T
     if f.ndim == 2:
@@ -85,17 +84,17 @@ def _as_rows(features: torch.Tensor | np.ndarray) -> torch.Tensor:
     raise ValueError(f"features must be (C, h, w) or (N, C), got {tuple(f.shape)}")
 
 
-def sample_rows(features: torch.Tensor, count: int, generator: torch.Generator) -> torch.Tensor:
+def sample_rows(features: np.ndarray, count: int, generator: np.random.Generator) -> np.ndarray:
     """``count`` random rows (cells) of a (C, h, w) map or (N, C) rows as (≤count, C)."""
     rows = _as_rows(features)
     if rows.shape[0] <= count:
         return rows
-    return rows[torch.randperm(rows.shape[0], generator=generator)[:count]]
+    return rows[generator.permutation(rows.shape[0])[:count]]
 
 
-def moments(samples: torch.Tensor | np.ndarray) -> Moments:
+def moments(samples: np.ndarray) -> Moments:
     """Moments of (N, C) rows or a (C, h, w) map."""
-    x = _as_rows(samples).double()
+    x = _as_rows(samples).astype(np.float64)
     return Moments(x.shape[0], x.sum(0), x.T @ x)
 
 
@@ -106,44 +105,38 @@ def merge_moments(parts: list[Moments]) -> Moments:
     return Moments(sum(m.count for m in parts), sum(m.total for m in parts), sum(m.outer for m in parts))
 
 
-def _host(t: torch.Tensor) -> np.ndarray:
-    """float32 numpy copy of ``t``, wherever it lives (the backbone's features are on CUDA when there is one)."""
-    return t.detach().float().cpu().numpy()
-
-
 def fit_moments(m: Moments, n_components: int, backbone: str, version: int = 1) -> PcaBasis:
     """Fit a K-component basis to the rows summarised by ``m`` (N ≥ K, C ≥ K)."""
     n, c = m.count, m.total.shape[0]
     if n < n_components or c < n_components:
         raise ValueError(f"need at least K={n_components} samples and channels, got {n}×{c}")
     mean = m.total / n
-    cov = (m.outer - n * torch.outer(mean, mean)) / max(n - 1, 1)
-    evals, evecs = torch.linalg.eigh((cov + cov.T) / 2)  # ascending
-    order = torch.argsort(evals, descending=True)[:n_components]
+    cov = (m.outer - n * np.outer(mean, mean)) / max(n - 1, 1)
+    evals, evecs = np.linalg.eigh((cov + cov.T) / 2)  # ascending
+    order = np.argsort(evals)[::-1][:n_components]
     return PcaBasis(
         version=version,
         backbone=backbone,
-        mean=_host(mean),
-        components=_host(evecs[:, order].T.contiguous()),
-        explained_variance=_host(evals[order]),
-        total_variance=float(evals.clamp_min(0).sum()),
+        mean=mean.astype(np.float32),
+        components=np.ascontiguousarray(evecs[:, order].T, dtype=np.float32),
+        explained_variance=evals[order].astype(np.float32),
+        total_variance=float(np.clip(evals, 0, None).sum()),
     )
 
 
-def fit_pca(samples: torch.Tensor | np.ndarray, n_components: int, backbone: str, version: int = 1) -> PcaBasis:
+def fit_pca(samples: np.ndarray, n_components: int, backbone: str, version: int = 1) -> PcaBasis:
     """Fit a K-component basis to (N, C) samples (N ≥ K)."""
     return fit_moments(moments(samples), n_components, backbone, version)
 
 
-def project(basis: PcaBasis, features: torch.Tensor) -> np.ndarray:
+def project(basis: PcaBasis, features: np.ndarray) -> np.ndarray:
     """(C, h, w) features → (h, w, K) float16 codes."""
-    f = torch.as_tensor(features).float()
+    f = np.asarray(features, dtype=np.float32)
     if f.ndim != 3 or f.shape[0] != basis.mean.shape[0]:
         raise ValueError(f"features must be (C={basis.mean.shape[0]}, h, w), got {tuple(f.shape)}")
     c, h, w = f.shape
-    rows = f.reshape(c, -1).T - torch.from_numpy(basis.mean).to(f.device)
-    codes = rows @ torch.from_numpy(basis.components).to(f.device).T
-    return _host(codes.reshape(h, w, -1)).astype(np.float16)
+    codes = (f.reshape(c, -1).T - basis.mean) @ basis.components.T
+    return codes.reshape(h, w, -1).astype(np.float16)
 
 
 def reconstruct(basis: PcaBasis, codes: np.ndarray) -> np.ndarray:
@@ -153,7 +146,7 @@ def reconstruct(basis: PcaBasis, codes: np.ndarray) -> np.ndarray:
 
 
 def retained_variance(
-    basis: PcaBasis, samples: torch.Tensor | np.ndarray, centre: Literal["own", "basis"] = "own"
+    basis: PcaBasis, samples: np.ndarray, centre: Literal["own", "basis"] = "own"
 ) -> float:
     """Fraction of the variance of (N, C) rows or a (C, h, w) map kept by the round trip (no float16 step).
 
@@ -162,7 +155,7 @@ def retained_variance(
     """
     if centre not in ("own", "basis"):
         raise ValueError(f"centre must be 'own' or 'basis', got {centre!r}")
-    x = _as_rows(samples).cpu().numpy().astype(np.float64)
+    x = _as_rows(samples).astype(np.float64)
     about = x.mean(0) if centre == "own" else basis.mean.astype(np.float64)
     offset = x - basis.mean
     residual = offset - (offset @ basis.components.T) @ basis.components
@@ -179,7 +172,7 @@ class PcaFitter:
 
     def __init__(self, params: PcaParams, backbone: str):
         self.params, self.backbone = params, backbone
-        self._gen = torch.Generator().manual_seed(params.seed)
+        self._gen = np.random.default_rng(params.seed)
         self._all: Moments | None = None
         self._recent: deque[Moments] = deque(maxlen=max(params.refit_window, 1))
         self._n_collected = 0
@@ -192,7 +185,7 @@ class PcaFitter:
     def ready(self) -> bool:
         return self.basis is not None
 
-    def add(self, features: torch.Tensor) -> PcaBasis | None:
+    def add(self, features: np.ndarray) -> PcaBasis | None:
         """Add one keyframe's (C, h, w) features; returns a basis when this keyframe made a new one."""
         if self.basis is None:
             self._collect(features)
@@ -220,7 +213,7 @@ class PcaFitter:
             raise ValueError("no keyframe features collected yet")
         return self._fit(self._all)
 
-    def _collect(self, features: torch.Tensor) -> None:
+    def _collect(self, features: np.ndarray) -> None:
         m = moments(sample_rows(features, self.params.samples_per_keyframe, self._gen))
         self._all = m if self._all is None else merge_moments([self._all, m])
         if self.params.refit_below > 0.0 and self.params.refit_window > 0:

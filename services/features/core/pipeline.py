@@ -12,7 +12,6 @@ from dataclasses import dataclass, field
 from typing import Callable, NamedTuple
 
 import numpy as np
-import torch
 
 from .depth import DepthParams, model_disparity, sensor_disparity
 from .geometry import Intrinsics, ResolutionParams, fov_prior, resize_to_working, to_grey, to_rgb, working_size
@@ -40,7 +39,7 @@ class KeyframeOut(NamedTuple):
     """(H, W, 3) uint8 RGB working image."""
     intrinsics: Intrinsics
     """At working resolution."""
-    features: torch.Tensor | None
+    features: np.ndarray | None
     """(C, H/8, W/8) float32 unit-norm blended features; None until :meth:`FeaturesCore.describe`."""
     disparity: np.ndarray | None
     """(H/8, W/8) float32 1/m prior, 0 = unknown; None without a depth source."""
@@ -84,9 +83,9 @@ class FeaturesCore:
     def __init__(
         self,
         params: FeaturesParams,
-        backbone: Callable[[torch.Tensor], torch.Tensor],
-        normalise: Callable[[np.ndarray], torch.Tensor],
-        depth_model: Callable[[torch.Tensor], torch.Tensor] | None = None,
+        backbone: Callable[[np.ndarray], np.ndarray],
+        normalise: Callable[[np.ndarray], np.ndarray],
+        depth_model: Callable[[np.ndarray], np.ndarray] | None = None,
     ):
         self.params = params
         self.backbone, self.normalise, self.depth_model = backbone, normalise, depth_model

@@ -11,12 +11,12 @@ import time
 from dataclasses import dataclass
 from typing import Callable, NamedTuple
 
-import torch
-from torch.nn import functional as F
+import numpy as np
 
 from .geometry import GRID_STRIDE
+from .resample import l2_normalise, resize_bilinear
 
-Backbone = Callable[[torch.Tensor], torch.Tensor]
+Backbone = Callable[[np.ndarray], np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -32,7 +32,7 @@ class PyramidParams:
 
 
 class PyramidFeatures(NamedTuple):
-    features: torch.Tensor
+    features: np.ndarray
     """(C, H/8, W/8) float32, unit L2 norm per grid cell."""
     seconds_per_scale: dict[float, float]
     """Wall time of each scale (resize + backbone + upsample), for benchmarks."""
@@ -49,14 +49,14 @@ def scaled_size(height: int, width: int, scale: float, patch: int) -> tuple[int,
     return max(patch, int(round(height * scale / patch)) * patch), max(patch, int(round(width * scale / patch)) * patch)
 
 
-def backbone_map(image: torch.Tensor, backbone: Backbone, scale: float, patch: int) -> torch.Tensor:
+def backbone_map(image: np.ndarray, backbone: Backbone, scale: float, patch: int) -> np.ndarray:
     """(1, 3, H, W) normalised image → (1, C, h_σ, w_σ) unit-norm patch features at scale σ."""
     h, w = scaled_size(image.shape[2], image.shape[3], scale, patch)
-    x = F.interpolate(image, size=(h, w), mode="bilinear", align_corners=False, antialias=scale < 1.0)
-    return F.normalize(backbone(x).float(), dim=1)
+    x = resize_bilinear(image, (h, w), antialias=scale < 1.0)
+    return l2_normalise(np.asarray(backbone(x), np.float32), axis=1)
 
 
-def multiscale_features(image: torch.Tensor, backbone: Backbone, params: PyramidParams = PyramidParams()) -> PyramidFeatures:
+def multiscale_features(image: np.ndarray, backbone: Backbone, params: PyramidParams = PyramidParams()) -> PyramidFeatures:
     """Blend of the backbone's features over ``params.scales`` on the 1/8 grid.
 
     ``image``: (1, 3, H, W) float32 ImageNet-normalised RGB, H and W multiples of 8 (the working image).
@@ -71,7 +71,7 @@ def multiscale_features(image: torch.Tensor, backbone: Backbone, params: Pyramid
     for scale, weight in zip(params.scales, scale_weights(params.scales)):
         t0 = time.perf_counter()
         fmap = backbone_map(image, backbone, scale, params.patch_size)
-        up = F.interpolate(fmap, size=grid, mode="bilinear", align_corners=False)[0]
-        blend = weight * up if blend is None else blend + weight * up
+        up = resize_bilinear(fmap[0], grid)
+        blend = np.float32(weight) * up if blend is None else blend + np.float32(weight) * up
         seconds[scale] = time.perf_counter() - t0
-    return PyramidFeatures(F.normalize(blend, dim=0), seconds)
+    return PyramidFeatures(l2_normalise(blend, axis=0), seconds)

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-import torch
 
 
 def box_mask(height: int, width: int, box: tuple[float, float, float, float]) -> np.ndarray:
@@ -25,19 +24,30 @@ def box_mask(height: int, width: int, box: tuple[float, float, float, float]) ->
     return mask
 
 
-def pooled_feature(feature_map: torch.Tensor, mask: np.ndarray) -> np.ndarray:
+def _adaptive_mean(n_in: int, n_out: int) -> np.ndarray:
+    """(n_out, n_in) weights of adaptive average pooling along one axis: bin i averages the inputs
+    [⌊i·n_in/n_out⌋, ⌈(i+1)·n_in/n_out⌉), as torch's ``adaptive_avg_pool2d``."""
+    weights = np.zeros((n_out, n_in), np.float64)
+    for i in range(n_out):
+        start, end = (i * n_in) // n_out, -((-(i + 1) * n_in) // n_out)
+        weights[i, start:end] = 1.0 / (end - start)
+    return weights
+
+
+def pooled_feature(feature_map: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """(C, h, w) float features + (H, W) bool mask → (C,) float32 unit vector (mask-weighted mean)."""
+    feature_map = np.asarray(feature_map, np.float32)
     if feature_map.ndim != 3:
         raise ValueError(f"feature_map must be (C, h, w), got {tuple(feature_map.shape)}")
     mask = np.asarray(mask, bool)
     if mask.ndim != 2 or not mask.any():
         raise ValueError("mask must be a non-empty (H, W) boolean array")
-    m = torch.from_numpy(mask.astype(np.float32))[None, None].to(feature_map.device)
-    weights = torch.nn.functional.adaptive_avg_pool2d(m, feature_map.shape[1:])[0, 0]  # (h, w) area fractions
+    (h, w), (H, W) = feature_map.shape[1:], mask.shape
+    weights = _adaptive_mean(H, h) @ mask.astype(np.float64) @ _adaptive_mean(W, w).T  # (h, w) area fractions
     if float(weights.sum()) <= 0:
         raise ValueError("mask covers no patch")
-    vec = (feature_map.float() * weights).sum(dim=(1, 2)) / weights.sum()
-    return torch.nn.functional.normalize(vec, dim=0).cpu().numpy().astype(np.float32)
+    vec = np.tensordot(feature_map, weights, axes=([1, 2], [0, 1])) / weights.sum()
+    return (vec / max(float(np.linalg.norm(vec)), 1e-12)).astype(np.float32)
 
 
 def fit_to_patches(image: np.ndarray, mask: np.ndarray, patch: int, max_side: int) -> tuple[np.ndarray, np.ndarray]:
