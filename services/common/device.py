@@ -23,7 +23,7 @@ def resolve_device(name: str = "auto") -> "torch.device":
 
 def device_type(name: str = "auto") -> str:
     """``resolve_device(name).type``, without importing torch where the answer is the CPU anyway: a process whose
-    models run on onnxruntime then never loads torch (~190 MB). ``auto`` asks torch only where a GPU driver is
+    models run on onnxruntime then never loads torch (features: ~280 MB). ``auto`` asks torch only where a GPU driver is
     installed (torch.cuda needs one) or torch is loaded already."""
     if name == "cpu":
         return "cpu"

@@ -23,7 +23,10 @@ def _body(bus, stop) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return service_main("features", _body, handles_frames=True)
+    # the PCA's matmuls are numpy's since features runs without torch: one BLAS thread, as the mapstore, so that an
+    # idle pool's spinning threads take no CPU from tracking and mapping (KITTI keyframes: 417 ms described and
+    # coded with one thread, 442 with two)
+    return service_main("features", _body, handles_frames=True, blas_threads=1)
 
 
 if __name__ == "__main__":

