@@ -79,25 +79,16 @@ def load_backbone(
         proto = imgfocus.load_onnx(loc.path, entry.name)
         if use_onnx:
             return _imgfocus_onnx(proto, entry, threads, spinning, int8)
-        dev = _torch_device(device, threads)
+        dev = resolve_device(device)
         return _imgfocus_torch(proto, entry, dev, compute_dtype(dev, half))
     if entry.loader == "hf_dinov2":
         from .torch_backbones import TorchDinoBackbone
 
         tf = _transformers(entry)
         model = _from_pretrained(tf.AutoModel, loc.path, entry, store)
-        dev = _torch_device(device, threads)
+        dev = resolve_device(device)
         return TorchDinoBackbone(model, entry.name, entry.output_space, dev, compute_dtype(dev, half))
     raise ModelError(f"model '{entry.name}': unknown backbone loader {entry.loader!r}")
-
-
-def _torch_device(device: str, threads: int = 0) -> "torch.device":
-    """The device a torch model runs on; ``threads`` > 0 caps torch's CPU threads (the process's, once it loads)."""
-    import torch
-
-    if threads > 0:
-        torch.set_num_threads(threads)
-    return resolve_device(device)
 
 
 def _imgfocus_onnx(proto, entry: ModelEntry, threads: int, spinning: bool = False,
