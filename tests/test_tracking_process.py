@@ -150,15 +150,16 @@ def test_frames_that_come_while_the_tracking_process_starts_are_held_and_all_pos
     from services.common.config import BusSettings
     from services.common.schema import FrameLite
 
-    frames = range(12)
+    frames = []
+    for i in range(12):  # rendered first: they must all arrive while the process starts, not as fast as a loaded
+        f = world.render(i)  # machine renders them (the startup backlog ends once the tracker is up)
+        frames.append(FrameLite("cam1", i, f.t_ns, image=_grey(f.rgb, half=True),
+                                intrinsics=np.asarray(f.intrinsics, np.float64) / 2, realtime=True))
     with Bus(BusSettings(listen=[unix_endpoint]), "ba", "test") as bus:
         inbox = Inbox(3, droppable=(FrameLite,))
         loop = TrackingLoop(TrackerProcess(BaSettings().tracker_factory()), bus, inbox, "cam1", {})
         loop.start()
-        for i in frames:
-            f = world.render(i)
-            lite = FrameLite("cam1", i, f.t_ns, image=_grey(f.rgb, half=True),
-                             intrinsics=np.asarray(f.intrinsics, np.float64) / 2, realtime=True)
+        for lite in frames:
             inbox.put(Delivery(keys.topic("cam1", keys.FRAME_LITE), lite))
         deadline = time.monotonic() + 60
         while loop.tracked < len(frames) and time.monotonic() < deadline:

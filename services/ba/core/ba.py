@@ -268,7 +268,10 @@ def _linearised(state: BAState, prep: _Prepared, params: BAParams, frozen: _Froz
         return
     for edges in _edge_slices(len(prep.ii), params):
         part = _edge_residuals(state, _edges(prep, edges), params, with_jac=True)
-        yield edges, _normal_equations(part, params, _sliced_frozen(frozen, edges))
+        equations = _normal_equations(part, params, _sliced_frozen(frozen, edges))
+        del part  # the residuals' other per-pixel fields are not needed by the solve
+        yield edges, equations
+        del equations  # the caller has summed this slice: freed before the next one is formed
 
 
 def _apply(state: BAState, step: schur.Step, params: BAParams,

@@ -14,7 +14,6 @@ costs ``N * P * D^2`` instead of ``N * P * n_cam^2``.
 """
 from __future__ import annotations
 
-import itertools
 from typing import Iterable, NamedTuple
 
 import torch
@@ -139,9 +138,16 @@ def solve(eq: NormalEquations | Iterable[tuple[slice, NormalEquations]], ii: tor
     h_dd = torch.zeros(n_kf, n_pix, dtype=pix_dtype, device=dev)
     g_d = torch.zeros(n_kf, n_pix, dtype=pix_dtype, device=dev)
     coupling = torch.zeros(n_kf, width, n_pix, dtype=pix_dtype, device=dev)
-    for edges, part in itertools.chain([first] if first is not None else [], parts):
+    sliced = first
+    del first
+    while sliced is not None:
+        edges, part = sliced
+        sliced = None  # no reference to a slice's Jacobians is left once it is summed, so the next slice's are
+        # formed in the heap it frees (the loop variable of a for loop held it while the next one was formed)
         _add_edges(part, ii[edges], jj[edges], slot[edges], n_kf, n_ext, expand=expand,
                    big_h=big_h, big_g=big_g, h_dd=h_dd, g_d=g_d, coupling=coupling)
+        del part
+        sliced = next(parts, None)
     h_dd = h_dd + prior_h.to(pix_dtype)
     g_d = g_d + prior_g.to(pix_dtype)
     big_h = big_h.view(n_ext, n_ext)
