@@ -18,7 +18,9 @@ Modes (several may be given; each is one run):
   --frames N       memory check: a lossless run of synth:frames=N,width=256,height=192,span=N*100/120 (the
                    demo's motion per frame, circling the room) that records every
                    service's RSS each 500 frames (summary rss_mb_at_frames) and reports ba's and the mapstore's
-                   growth after the first 1,000 frames and the end-of-stream time (ingest's EOS → the last stage's)
+                   growth after the first 1,000 frames (those samples, and each one's high-water RSS over the first
+                   1,000 frames against any later 1,000, from resources.csv) and the end-of-stream time (ingest's
+                   EOS → the last stage's)
 
 Usage:
   python bench/live.py --kitti
@@ -30,7 +32,9 @@ Usage:
 from __future__ import annotations
 
 import argparse
+import csv
 import json
+import math
 import os
 import shlex
 import signal
@@ -40,6 +44,8 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+
+import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 DATA_DIR = Path(os.environ.get("KMVIPE_DATA_DIR", REPO.parent / "shared" / "data"))
@@ -137,8 +143,8 @@ def _fmt(value, spec: str = "", none: str = "–") -> str:
     return none if value is None else format(value, spec)
 
 
-def table(run: Run, summary: dict, meta: dict) -> str:
-    """One markdown table of a run."""
+def table(run: Run, summary: dict, meta: dict, out_dir: Path | None = None) -> str:
+    """One markdown table of a run (``out_dir``: its outputs, for the resources.csv of the memory rows)."""
     rows: list[tuple[str, str]] = []
     read = summary.get("frames_read") or 0
     posed = summary.get("posed_fraction")
@@ -179,6 +185,7 @@ def table(run: Run, summary: dict, meta: dict) -> str:
     rows.append(("all services: peak PSS (shared pages counted once)", f"{pss:.0f} MB" if pss else "–"))
     if run.memory:
         rows += memory_rows(summary)
+        rows += high_water_rows(summary, out_dir)
     rows.append(("load average before / mean during (1 min) / after",
                  f"{meta['load_before'][0]:.2f} / {_fmt(meta['load_mean_1min'], '.2f')} / "
                  f"{meta['load_after'][0]:.2f} on {meta['cpus']} CPUs"))
@@ -213,6 +220,45 @@ def memory_rows(summary: dict) -> list[tuple[str, str]]:
     rows.append(("RSS every 500 frames (ba / mapstore MB)",
                  ", ".join(f"{s['frames']}: {s['rss_mb'].get('ba', 0):.0f}/{s['rss_mb'].get('mapstore', 0):.0f}"
                            for s in series)))
+    return rows
+
+
+def high_water_rows(summary: dict, out_dir: Path | None) -> list[tuple[str, str]]:
+    """ba's and the mapstore's highest RSS over the first 1,000 frames against their highest over any later
+    1,000 frames, streaming (before ingest's EOS) and with the end of stream: like against like. The samples every
+    500 frames above are single instants of processes whose BAs and re-fusions come and go in bursts of a few
+    hundred MB, so they say more about where a burst fell than about growth. From the run's resources.csv (every
+    0.5 s), mapped to frames through the series' timestamps."""
+    series = [s for s in summary.get("rss_mb_at_frames") or [] if s.get("t_s") is not None]
+    path = None if out_dir is None else out_dir / "resources.csv"
+    if path is None or not path.is_file() or len(series) < 3 or series[-2]["frames"] < 2000:
+        return [("high-water RSS per 1,000 frames", "– (needs resources.csv and 2,000 frames)")]
+    with open(path) as f:
+        samples = [(float(r["t_s"]), r["service"], float(r["rss_mb"])) for r in csv.DictReader(f)]
+    end_t = series[-2]["t_s"]  # the last streaming record; the final one is taken at the end of the stream
+    times = [s["t_s"] for s in series[:-1]]
+    frames = [s["frames"] for s in series[:-1]]
+
+    def frame_at(t: float) -> float:  # linear in time between two records
+        return float(np.interp(t, times, frames))
+
+    rows = []
+    for name in ("ba", "mapstore"):
+        mine = [(t, rss) for t, svc, rss in samples if svc == name]
+        first = max((rss for t, rss in mine if frame_at(t) <= 1000), default=None)
+        later = [((math.ceil(frame_at(t)) - 1) // 1000, rss) for t, rss in mine if frame_at(t) > 1000 and t <= end_t]
+        if first is None or not later:
+            continue
+        per_k: dict[int, float] = {}
+        for k, rss in later:
+            per_k[k] = max(per_k.get(k, 0.0), rss)
+        streaming = max(per_k.values())
+        with_end = max(rss for t, rss in mine if frame_at(t) > 1000)
+        rows.append((f"{name}: high-water RSS, first 1,000 frames → any later 1,000 (streaming / with the end)",
+                     f"{first:.0f} → {streaming:.0f} MB ({100 * (streaming - first) / first:+.1f} %) / "
+                     f"{with_end:.0f} MB ({100 * (with_end - first) / first:+.1f} %)"))
+        rows.append((f"{name}: high-water RSS per 1,000 frames after the first (MB)",
+                     ", ".join(f"{1000 * k}–{1000 * (k + 1)}: {v:.0f}" for k, v in sorted(per_k.items()))))
     return rows
 
 
@@ -260,7 +306,7 @@ def main() -> int:
     tables = []
     for run in runs:
         summary, meta = run_kmvipe(run, args.out, args.timeout)
-        tables.append(table(run, summary, meta))
+        tables.append(table(run, summary, meta, args.out / run.label))
         print("\n" + tables[-1] + "\n", flush=True)
         results.append({"label": run.label, "summary": summary, "measured": meta})
     if len(tables) > 1:
