@@ -34,7 +34,6 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import math
 import os
 import shlex
 import signal
@@ -228,35 +227,30 @@ def high_water_rows(summary: dict, out_dir: Path | None) -> list[tuple[str, str]
     1,000 frames, streaming (before ingest's EOS) and with the end of stream: like against like. The samples every
     500 frames above are single instants of processes whose BAs and re-fusions come and go in bursts of a few
     hundred MB, so they say more about where a burst fell than about growth. From the run's resources.csv (every
-    0.5 s), mapped to frames through the series' timestamps."""
-    series = [s for s in summary.get("rss_mb_at_frames") or [] if s.get("t_s") is not None]
+    0.5 s), mapped to frames through the series' timestamps (the last record is taken at the end of the stream)."""
+    series = summary.get("rss_mb_at_frames") or []
     path = None if out_dir is None else out_dir / "resources.csv"
     if path is None or not path.is_file() or len(series) < 3 or series[-2]["frames"] < 2000:
         return [("high-water RSS per 1,000 frames", "– (needs resources.csv and 2,000 frames)")]
     with open(path) as f:
-        samples = [(float(r["t_s"]), r["service"], float(r["rss_mb"])) for r in csv.DictReader(f)]
-    end_t = series[-2]["t_s"]  # the last streaming record; the final one is taken at the end of the stream
-    times = [s["t_s"] for s in series[:-1]]
-    frames = [s["frames"] for s in series[:-1]]
-
-    def frame_at(t: float) -> float:  # linear in time between two records
-        return float(np.interp(t, times, frames))
-
+        samples = list(csv.DictReader(f))
+    streaming = series[:-1]
+    end_t = streaming[-1]["t_s"]
     rows = []
     for name in ("ba", "mapstore"):
-        mine = [(t, rss) for t, svc, rss in samples if svc == name]
-        first = max((rss for t, rss in mine if frame_at(t) <= 1000), default=None)
-        later = [((math.ceil(frame_at(t)) - 1) // 1000, rss) for t, rss in mine if frame_at(t) > 1000 and t <= end_t]
-        if first is None or not later:
+        t = np.array([float(r["t_s"]) for r in samples if r["service"] == name])
+        rss = np.array([float(r["rss_mb"]) for r in samples if r["service"] == name])
+        frame = np.interp(t, [s["t_s"] for s in streaming], [s["frames"] for s in streaming])
+        first, later = rss[frame <= 1000], (frame > 1000) & (t <= end_t)
+        if not first.size or not later.any():
             continue
-        per_k: dict[int, float] = {}
-        for k, rss in later:
-            per_k[k] = max(per_k.get(k, 0.0), rss)
-        streaming = max(per_k.values())
-        with_end = max(rss for t, rss in mine if frame_at(t) > 1000)
+        base = first.max()
+        block = (np.ceil(frame[later]) - 1) // 1000  # k: frames 1000k+1 .. 1000(k+1)
+        per_k = {int(k): float(rss[later][block == k].max()) for k in np.unique(block)}
+        top, with_end = max(per_k.values()), float(rss[frame > 1000].max())
         rows.append((f"{name}: high-water RSS, first 1,000 frames → any later 1,000 (streaming / with the end)",
-                     f"{first:.0f} → {streaming:.0f} MB ({100 * (streaming - first) / first:+.1f} %) / "
-                     f"{with_end:.0f} MB ({100 * (with_end - first) / first:+.1f} %)"))
+                     f"{base:.0f} → {top:.0f} MB ({100 * (top - base) / base:+.1f} %) / "
+                     f"{with_end:.0f} MB ({100 * (with_end - base) / base:+.1f} %)"))
         rows.append((f"{name}: high-water RSS per 1,000 frames after the first (MB)",
                      ", ".join(f"{1000 * k}–{1000 * (k + 1)}: {v:.0f}" for k, v in sorted(per_k.items()))))
     return rows

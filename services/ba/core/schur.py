@@ -123,7 +123,7 @@ def solve(eq: NormalEquations | Iterable[tuple[slice, NormalEquations]], ii: tor
         prior_h, prior_g: ``(N, P)`` extra disparity diagonal and gradient (disparity prior; zeros if none).
     """
     parts = iter([(slice(0, len(ii)), eq)] if isinstance(eq, NormalEquations) else eq)
-    first = next(parts, None)
+    item = next(parts, None)  # (edges, equations) of the first slice
     dtype, dev = prior_h.dtype, ii.device  # camera system and step dtype (float64 in BA)
     n_pix = prior_h.shape[1]
     n_cam = 6 * n_kf + 1
@@ -134,20 +134,18 @@ def solve(eq: NormalEquations | Iterable[tuple[slice, NormalEquations]], ii: tor
     expand = _expansion(dtype, dev)  # (13, 7): [xi_i, xi_j, f] from [xi_i, f]
     big_h = torch.zeros(n_ext * n_ext, dtype=dtype, device=dev)
     big_g = torch.zeros(n_ext, dtype=dtype, device=dev)
-    pix_dtype = dtype if first is None else first[1].j_disp.dtype  # per-pixel sums stay in the Jacobians' dtype
+    pix_dtype = dtype if item is None else item[1].j_disp.dtype  # per-pixel sums stay in the Jacobians' dtype
     h_dd = torch.zeros(n_kf, n_pix, dtype=pix_dtype, device=dev)
     g_d = torch.zeros(n_kf, n_pix, dtype=pix_dtype, device=dev)
     coupling = torch.zeros(n_kf, width, n_pix, dtype=pix_dtype, device=dev)
-    sliced = first
-    del first
-    while sliced is not None:
-        edges, part = sliced
-        sliced = None  # no reference to a slice's Jacobians is left once it is summed, so the next slice's are
-        # formed in the heap it frees (the loop variable of a for loop held it while the next one was formed)
+    while item is not None:
+        edges, part = item
         _add_edges(part, ii[edges], jj[edges], slot[edges], n_kf, n_ext, expand=expand,
                    big_h=big_h, big_g=big_g, h_dd=h_dd, g_d=g_d, coupling=coupling)
-        del part
-        sliced = next(parts, None)
+        # no reference to a summed slice is left while the next one is formed, so it is formed in the heap this
+        # one frees (a for loop's variable would hold it meanwhile)
+        item = part = None
+        item = next(parts, None)
     h_dd = h_dd + prior_h.to(pix_dtype)
     g_d = g_d + prior_g.to(pix_dtype)
     big_h = big_h.view(n_ext, n_ext)
