@@ -253,6 +253,24 @@ def test_batches_that_wait_are_fused_later_in_one_refresh_to_the_same_map(tmp_pa
     paced.close()
 
 
+def test_an_export_inside_the_batch_that_ends_the_stream_writes_everything_committed(tmp_path):
+    """The service handles ba's EOS inside a batch that waits for its re-fusion (refresh_period_s, and a slow
+    re-fusion holds the next one back): the export it starts must still write the map of every message."""
+    msgs, one = fused_one_by_one(tmp_path)
+    state = MapState(settings(tmp_path / "batched", export_dir=str(tmp_path / "export")))
+    with state.batch(refresh=False):
+        for msg in stream_messages(6):  # keyframes, graphs (the last one final) and ba's EOS, in one batch
+            out = handle(state, msg, state.cfg)
+    assert [m.stage for _, m in out] == ["mapstore"]
+    assert_same_fused_map(one, state)
+    exported = read_ply(tmp_path / "export" / "map.ply")
+    assert len(exported) == len(one.map.fused().keys) > 0
+    np.testing.assert_allclose(np.stack([exported[c] for c in "xyz"], 1), one.map.fused().xyz, atol=1e-6)
+    assert state.refresh() == 0  # nothing is left for the batch's end or after it
+    one.close()
+    state.close()
+
+
 def test_a_query_answers_on_what_is_committed_but_not_re_fused_yet(tmp_path):
     from services.common.schema import MapStats
 
@@ -279,6 +297,32 @@ def test_the_loop_refreshes_at_most_once_per_period():
     assert pace.due()
     always = Period(0.0, clock=lambda: now[0])
     assert always.due() and always.due()  # 0: after every batch
+
+
+def test_a_slow_re_fusion_holds_the_next_one_back():
+    """refresh_max_share: a re-fusion that took 3 s at a third of the time is followed by 6 s without one; a quick
+    one leaves the period as it was."""
+    now = [0.0]
+    pace = Period(2.0, clock=lambda: now[0])
+    now[0] = 2.0
+    assert pace.due()
+    now[0] = 5.0  # the re-fusion took 3 s
+    pace.hold(3.0 * (1 / 0.34 - 1))
+    now[0] = 10.8
+    assert not pace.due()
+    now[0] = 10.9
+    assert pace.due()
+    now[0] = 11.0  # 0.1 s: 0.19 s held, within the period
+    pace.hold(0.1 * (1 / 0.34 - 1))
+    now[0] = 12.8
+    assert not pace.due()
+    now[0] = 12.9
+    assert pace.due()
+    always = Period(0.0, clock=lambda: now[0])
+    always.hold(1.0)
+    assert not always.due()
+    now[0] = 14.0
+    assert always.due() and always.due()
 
 
 def test_the_map_is_exported_on_the_final_graph_before_bas_end_of_stream(tmp_path, unix_endpoint):

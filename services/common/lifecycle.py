@@ -92,13 +92,17 @@ class Period:
 
     def due(self) -> bool:
         now = self._clock()
-        if self.period_s > 0 and now - self._last < self.period_s:
+        if now - self._last < self.period_s:  # period 0: always due, unless held
             return False
         self._last = now
         return True
 
     def restart(self) -> None:
         self._last = self._clock()
+
+    def hold(self, seconds: float) -> None:
+        """The work is not due again for at least ``seconds`` from now (nor before the period has passed)."""
+        self._last = max(self._last, self._clock() + seconds - self.period_s)
 
 
 class MemoryRelease:

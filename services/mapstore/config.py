@@ -167,6 +167,12 @@ class MapstoreSettings(KmVipeSettings):
     every batch): each graph update moves the keyframes of ba's window again, so re-fusing fewer times does the
     same work fewer times. A query re-fuses what waits before it answers, and so does the export at the end
     of stream. KITTI 07 lossless: docs/BENCHMARKS.md, "Threads that sleep, a map re-fused every 2 s"."""
+    refresh_max_share: float = Field(0.34, gt=0, le=1)
+    """At most this share of the mapstore's time goes to the periodic re-fusion: one that took t seconds is
+    followed by at least t·(1/share − 1) seconds without one (and refresh_period_s). Where re-fusing is slow (a
+    loaded CPU, a large window) each re-fusion then covers more graph updates, so a keyframe ba revises again and
+    again is re-fused fewer times; queries and the export still re-fuse what waits first. 1: refresh_period_s
+    alone. docs/BENCHMARKS.md, "Re-fusion at most a third of the time"."""
     voxel_size: float = 0.02
     """Voxel edge: metres when voxel_mode is absolute, else a fraction of the median depth."""
     voxel_mode: Literal["absolute", "relative"] = "relative"

@@ -117,7 +117,7 @@ def export_final(state: MapState, cfg: MapstoreSettings) -> None:
     """ba's final graph is in and the stream complete: the export, before ba's EOS (ba solves its frames again
     meanwhile; the export needs only the keyframes). Its seconds go into this stage's EOS."""
     began = time.monotonic()
-    state.refresh()  # the final graph and the last codes may wait for their re-fusion (refresh_period_s)
+    state.refresh(now=True)  # the final graph and the last codes may wait (refresh_period_s, or in this batch)
     try:
         if cfg.export_dir:
             export_state(state, Path(cfg.export_dir))
@@ -133,7 +133,10 @@ def finish_stream(state: MapState, msg: Eos, cfg: MapstoreSettings) -> list[tupl
     log.info("end of stream", extra={"stream": msg.stream, "seq": msg.seq, "stage": msg.stage,
                                      "keyframes_without_codes": state.without_codes_count(),
                                      "keyframes_folded": state.map.folded_count, "late_codes": state.late_codes,
-                                     "exported_before": state.final_export_s is not None})
+                                     "exported_before": state.final_export_s is not None,
+                                     "re_fusions": state.re_fusion["refreshes"],
+                                     "keyframes_re_fused": state.re_fusion["keyframes"],
+                                     "re_fusion_s": round(state.re_fusion["seconds"], 1)})
     if state.final_export_s is None:  # ba's EOS came first, or eos_wait_s passed: export the map as it is
         export_final(state, cfg)
     state.pending_eos, state.final_keyframes = None, None
@@ -272,7 +275,9 @@ def run(cfg: MapstoreSettings, bus: Bus, stop: threading.Event, state: MapState 
                         bus.publish(*progress_report(state, cfg, consumer))
                         last_report = time.monotonic()
         if refresh.due():
+            began = time.monotonic()
             state.refresh()  # what the batches since the last re-fusion changed
+            refresh.hold((time.monotonic() - began) * (1 / cfg.refresh_max_share - 1))
             release.maybe()  # between re-fusions: their arrays are freed
         if time.monotonic() - last_report >= PROGRESS_S:  # heartbeat: the next one repeats it, no need to block
             bus.publish(*progress_report(state, cfg, consumer), drop_if_congested=True)

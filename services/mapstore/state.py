@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Iterator
@@ -102,6 +103,7 @@ class MapState(FoldingPolicy):
         self._graph_seqs: set[int] = set()  # the keyframes ba's latest graph holds ...
         self._graph_max: int | None = None  # ... and the newest of them (None: no graph since the start)
         self.late_codes = 0  # codes that came for a keyframe already folded (committed, not in the map)
+        self.re_fusion = {"refreshes": 0, "keyframes": 0, "seconds": 0.0}  # the re-fusions' work so far (logged)
         # folded keyframes are final: their depth maps and images go to export_dir as they fold, so the end of
         # stream writes only the keyframes still live, the point cloud and the COLMAP model (export_folded)
         self.folded_exports = FoldedExports(Path(cfg.export_dir) if cfg.export_dir else None)
@@ -305,9 +307,17 @@ class MapState(FoldingPolicy):
                 else:
                     self._unfused = metric
 
-    def refresh(self) -> int:
-        """Re-fuse what batches left waiting (:meth:`batch`), if anything; the number of keyframes re-fused."""
+    def refresh(self, now: bool = False) -> int:
+        """Re-fuse what batches left waiting (:meth:`batch`), if anything; the number of keyframes re-fused.
+        ``now``: everything committed, inside a batch too (the export, which may run while a batch handles ba's
+        EOS, writes the map as it stands)."""
         with self.lock:
+            if now and self._deferred is not None:
+                metric, self._deferred, self._unfused = self._deferred, None, None
+                try:
+                    return self._refresh(metric)
+                finally:  # the batch goes on; nothing it committed so far is left for its end
+                    self._deferred = self.metric
             if self._unfused is None:
                 return 0
             metric, self._unfused = self._unfused, None
@@ -320,7 +330,12 @@ class MapState(FoldingPolicy):
             self._deferred = metric
             return 0
         had_voxel = self.map.voxel_size is not None
+        began = time.perf_counter()
         report = self.map.refresh()
+        if report.refreshed:
+            self.re_fusion["refreshes"] += 1
+            self.re_fusion["keyframes"] += len(report.refreshed)
+            self.re_fusion["seconds"] += time.perf_counter() - began
         meta = {}
         if not had_voxel and self.map.voxel_size is not None:
             meta["voxel_size"] = repr(float(self.map.voxel_size))
