@@ -13,7 +13,6 @@ import numpy as np
 import pytest
 
 from services.common.errors import DecodeError
-from services.common.lifecycle import Period
 from services.common.schema import Eos, Graph, Keyframe, MapQuery, PcaBasis as PcaMessage, decode
 from services.mapstore import queries
 from services.mapstore.config import MapstoreSettings
@@ -283,46 +282,6 @@ def test_a_query_answers_on_what_is_committed_but_not_re_fused_yet(tmp_path):
     assert answered.keyframes == 4 and answered.points == state.map.fused().keys.size > 0
     assert state.refresh() == 0  # nothing waits any more
     state.close()
-
-
-def test_the_loop_refreshes_at_most_once_per_period():
-    now = [0.0]
-    pace = Period(2.0, clock=lambda: now[0])
-    assert not pace.due()  # the period starts with the loop
-    now[0] = 2.0
-    assert pace.due() and not pace.due()  # due once, then the period starts again
-    now[0] = 3.9
-    assert not pace.due()
-    now[0] = 4.0
-    assert pace.due()
-    always = Period(0.0, clock=lambda: now[0])
-    assert always.due() and always.due()  # 0: after every batch
-
-
-def test_a_slow_re_fusion_holds_the_next_one_back():
-    """refresh_max_share: a re-fusion that took 3 s at a third of the time is followed by 6 s without one; a quick
-    one leaves the period as it was."""
-    now = [0.0]
-    pace = Period(2.0, clock=lambda: now[0])
-    now[0] = 2.0
-    assert pace.due()
-    now[0] = 5.0  # the re-fusion took 3 s
-    pace.hold(3.0 * (1 / 0.34 - 1))
-    now[0] = 10.8
-    assert not pace.due()
-    now[0] = 10.9
-    assert pace.due()
-    now[0] = 11.0  # 0.1 s: 0.19 s held, within the period
-    pace.hold(0.1 * (1 / 0.34 - 1))
-    now[0] = 12.8
-    assert not pace.due()
-    now[0] = 12.9
-    assert pace.due()
-    always = Period(0.0, clock=lambda: now[0])
-    always.hold(1.0)
-    assert not always.due()
-    now[0] = 14.0
-    assert always.due() and always.due()
 
 
 def test_the_map_is_exported_on_the_final_graph_before_bas_end_of_stream(tmp_path, unix_endpoint):

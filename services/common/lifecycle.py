@@ -104,6 +104,11 @@ class Period:
         """The work is not due again for at least ``seconds`` from now (nor before the period has passed)."""
         self._last = max(self._last, self._clock() + seconds - self.period_s)
 
+    def hold_after(self, work_s: float, max_share: float) -> None:
+        """Work that just took ``work_s`` seconds gets at most ``max_share`` (0–1] of the time: it is not due again
+        for work_s·(1/max_share − 1) seconds (nor before the period has passed)."""
+        self.hold(work_s * (1 / max_share - 1))
+
 
 class MemoryRelease:
     """When a long-running loop calls :func:`release_free_memory`: at most once per ``period_s`` (0: never), at a

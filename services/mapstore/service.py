@@ -277,7 +277,7 @@ def run(cfg: MapstoreSettings, bus: Bus, stop: threading.Event, state: MapState 
         if refresh.due():
             began = time.monotonic()
             state.refresh()  # what the batches since the last re-fusion changed
-            refresh.hold((time.monotonic() - began) * (1 / cfg.refresh_max_share - 1))
+            refresh.hold_after(time.monotonic() - began, cfg.refresh_max_share)
             release.maybe()  # between re-fusions: their arrays are freed
         if time.monotonic() - last_report >= PROGRESS_S:  # heartbeat: the next one repeats it, no need to block
             bus.publish(*progress_report(state, cfg, consumer), drop_if_congested=True)
