@@ -66,6 +66,25 @@ def test_a_frame_without_texture_stays_at_the_constant_velocity_prediction():
     assert trans < 1e-3 and rot < 0.05
 
 
+@pytest.mark.parametrize("speed_share, refused", [(1.0, False), (0.05, True)])
+def test_a_tracked_pose_beyond_mappings_speed_is_refused_for_the_prediction(speed_share, refused):
+    """Flow that holds can still land a frame far along what its view barely constrains (PnP on a view the
+    synthetic person fills: 17,000 map units off). A pose farther from the reference than max_speed_growth x
+    mapping's speed allows is refused: the frame keeps the prediction. At the camera's true speed nothing is."""
+    world = synth.SynthWorld(synth.SynthConfig(n_frames=60, width=512, height=384))
+    step = float(np.linalg.norm(world.poses[5, :3, 3] - world.poses[0, :3, 3]))
+    true_speed = step / (world.render(5).t_ns - world.render(0).t_ns)
+    tracker = Tracker(MotionParams(), TRACKING_FLOW)
+    tracker.set_reference(_reference(world, 0)._replace(speed=speed_share * true_speed))
+    for i in range(1, 4):
+        f = world.render(i)
+        guess = tracker.predict(f.t_ns)
+        out = tracker.track(i, f.t_ns, _grey(f.rgb, half=True))
+        assert out.ok != refused and out.refused == refused, i
+        trans, rot = _errors(out.pose, guess if refused else world.poses[i])
+        assert trans < (1e-9 if refused else 0.05 * step + 2e-3) and rot < (1e-6 if refused else 0.3), (i, trans, rot)
+
+
 def test_depth_carried_to_a_new_keyframe_matches_its_own():
     world = synth.SynthWorld(synth.SynthConfig(n_frames=60, width=512, height=384, person=False, moved_chair=False))
     a, b = _reference(world, 0), _reference(world, 4)

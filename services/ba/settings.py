@@ -132,6 +132,13 @@ class BaSettings(BASettings):
     tracking_relocalise_below_share: float = RelocaliseParams.track_below_share
     """Tracking tries a PnP pose from a frame it could not track (a lost view) until its prediction's flow keeps
     this share of the grid again; 0: never."""
+    weak_keyframe_gap: float = FrontendParams.weak_keyframe_gap
+    """A keyframe whose flow supports less than ``relocalise_below_share`` of the grid (or whose step is refused),
+    right after keyframes supported by more than twice that, becomes a frame again while it comes within this x the
+    recent keyframe spacing (0: never)."""
+    tracking_max_speed_growth: float = MotionParams.max_speed_growth
+    """Tracking refuses a pose farther from its reference than this x mapping's keyframe speed x their time apart
+    (the prediction is kept); 0 or less: no bound."""
     tracking_nice: int = 0
     """Niceness of the tracking thread (Linux; per thread). Tracking comes first on a shared CPU."""
     mapping_nice: int = 5
@@ -195,7 +202,8 @@ class BaSettings(BASettings):
         return FrontendParams(
             graph=graph, init=InitParams(min_keyframes=self.init_keyframes, min_flow=self.init_min_flow,
                                          max_keyframes=self.init_max_keyframes),
-            motion=MotionParams(huber=self.motion_huber), ba=self.ba_params(),
+            motion=MotionParams(huber=self.motion_huber, max_speed_growth=self.tracking_max_speed_growth),
+            ba=self.ba_params(), weak_keyframe_gap=self.weak_keyframe_gap,
             global_ba=self.ba_params(global_ba=True), flow=self.flow_params(), focal_after=self.focal_after,
             focal_until=self.focal_until, ark_with_focal=self.ark_with_focal, keep_keyframes=self.keep_keyframes,
             live_flow_downscale=self.live_flow_downscale, live_iterations=self.live_iterations,

@@ -51,6 +51,7 @@ class TrackingLoop:
         self._reset = False
         self.tracked = 0  # frames posed by tracking in this stream
         self.not_rigid = 0  # tracked poses that were not rigid transforms (not published)
+        self.refused = 0  # tracked poses beyond mapping's speed, the prediction published instead (this stream)
         self.last_seq = -1  # highest seq handled (for progress reports)
         # seq -> Anchor (dict operations are atomic; mapping pops what it uses, reset clears the rest)
         self.anchors = anchors
@@ -125,7 +126,7 @@ class TrackingLoop:
             ref, self._pending_ref = self._pending_ref, None
         if reset:
             self.tracker.reset()
-            self.tracked = 0
+            self.tracked = self.refused = 0
             self.anchors.clear()
         if ref is not None:
             self.tracker.set_reference(ref)
@@ -160,5 +161,9 @@ class TrackingLoop:
             self.anchors[msg.seq] = Anchor(out.ref_seq, torch.from_numpy(out.ref_from_cam), torch.from_numpy(out.pose),
                                            flow)
         self._publish(msg, out.pose, provisional=out.ref_seq < 0)
-        if not out.ok and out.ref_seq >= 0:
+        if out.refused:
+            self.refused += 1
+            log.info("frame kept its predicted pose (the pose tracked lay beyond mapping's speed)",
+                     extra={"stream": self.stream, "seq": msg.seq, "count": self.refused})
+        elif not out.ok and out.ref_seq >= 0:
             log.info("frame kept its predicted pose (weak flow)", extra={"stream": self.stream, "seq": msg.seq})

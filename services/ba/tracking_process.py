@@ -40,6 +40,7 @@ class Step(NamedTuple):
     ref_from_cam: np.ndarray | None  # (4, 4) float64 relative to that keyframe, when ``ok``
     flow: tuple[np.ndarray, np.ndarray] | None = None  # tracking's flow from that keyframe, when ``ok``: (h, w, 2)
     # float32 grid targets, (h, w) float32 confidence (mapping solves the frame again with it, frames.py)
+    refused: bool = False  # the pose tracking found lay beyond mapping's speed: ``pose`` is the prediction
 
 
 def step(tracker: Tracker, is_keyframe: bool, seq: int, t_ns: int, image: np.ndarray,
@@ -59,7 +60,7 @@ def step(tracker: Tracker, is_keyframe: bool, seq: int, t_ns: int, image: np.nda
         if is_keyframe:  # tracking moves on to it now, whether or not mapping keeps up
             tracker.promote(seq, t_ns, grey, out.pose)  # its reference image at working resolution
     flow = (out.target, out.confidence) if out.ok and out.target is not None else None
-    return Step(np.asarray(out.pose, np.float64), out.ok, out.ref_seq, ref_from_cam, flow)
+    return Step(np.asarray(out.pose, np.float64), out.ok, out.ref_seq, ref_from_cam, flow, out.refused)
 
 
 def half_size(grey: np.ndarray, intrinsics: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -38,6 +38,9 @@ logger = logging.getLogger(__name__)
 class Frontend(Refinement):
     """Stateful frontend; see the module docstring. ``device``: where BA tensors live."""
 
+    _supports: tuple[float, ...] = ()  # the grid shares the flows of the last keyframes kept supported (_lost_support);
+    # a class default so that a ba checkpoint of an earlier version, which lacks it, restores
+
     def __init__(self, params: FrontendParams = FrontendParams(), device: torch.device | str = "cpu"):
         self.params = params
         self.device = torch.device(device)
@@ -84,7 +87,12 @@ class Frontend(Refinement):
         g = self.graph
         if not self.initialised:
             return self._try_initialise()
-        self._align_keyframe(k)
+        support = self._align_keyframe(k)
+        if self._lost_support(k, support):
+            logger.info("keyframe its flow barely supports turned into a frame",
+                        extra={"seq": upkeep.to_frame(g, self.frames, k), "share": round(support, 3)})
+            return Update()
+        self._supports = (self._supports + (support,))[-6:]
         calibrating = not self._calibrated and len(g) >= self.params.focal_after and self.params.ba.optimise_focal
         if defer and not calibrating and self._deferred < self.params.live_max_deferred:
             return self._defer(k)
@@ -151,8 +159,9 @@ class Frontend(Refinement):
         snap = lambda t: as_numpy(t).copy()  # noqa: E731 — a CPU tensor's numpy view would follow later BAs
         previous = (g.stamps[k - 1], snap(g.poses[k - 1])) if k > 0 else None
         known = self._carried.get(g.seqs[k])  # a deferred keyframe: its depth carried over, no BA yet
+        speed = steps.reference_speed(g, k + 1) if k >= 2 and not steps.never_moved(g, k + 1) else None
         return Reference(g.seqs[k], g.stamps[k], snap(g.poses[k]), snap(g.disparity[k]), snap(g.intrinsics),
-                         g.images[k], previous, None if known is None else known.copy())
+                         g.images[k], previous, None if known is None else known.copy(), speed)
 
     def add_frame(self, frame: FrameInput) -> Update:
         image = core_flow.to_grey(np.asarray(frame.image))
@@ -221,7 +230,19 @@ class Frontend(Refinement):
             disp = torch.where(prior.to(dev) > 0, prior.to(dev), disp)
         return pose, disp
 
-    def _align_keyframe(self, k: int) -> None:
+    def _lost_support(self, k: int, support: float) -> bool:
+        """Keyframe ``k``'s flow supports less than ``relocalise.below_share`` of the grid, right after keyframes
+        whose flow supported more than twice that (the median of the last six), and it comes early
+        (``weak_keyframe_gap``): something fills the view. Where support is low all along (TartanAir's bare walls,
+        0.1-0.3) a weak keyframe is the camera's own motion and is kept: made frames, those let the next keyframe's
+        flow span ever more frames (TartanAir 1.3 -> 5.4 % of path)."""
+        below = self.params.relocalise.below_share
+        return (support < below and len(self._supports) >= 3 and float(np.median(self._supports)) > 2 * below
+                and steps.early(self.graph, k, self.params.weak_keyframe_gap))
+
+    def _align_keyframe(self, k: int) -> float:
+        """Keyframe ``k``'s pose from its flow to the keyframe before. Returns the share of the grid that supports
+        it (the alignment's robust weight), 0 where the step was implausible and the bounded prediction taken."""
         g = self.graph
         t = g.targets(k - 1, k)
         res = motion.align(g.poses[k], g.poses[k - 1][None], g.disparity[k - 1][None], t.target[None].to(self.device),
@@ -232,8 +253,10 @@ class Frontend(Refinement):
         if not steps.plausible(g, pose, k, self.params.max_step_growth):
             logger.info("keyframe pose implausible; bounded constant-velocity prediction kept",
                         extra={"seq": g.seqs[k]})
-            pose = steps.bounded_prediction(g, k)
+            g.poses[k] = steps.bounded_prediction(g, k)
+            return 0.0
         g.poses[k] = pose
+        return res.weight / g.disparity[k - 1].numel() if res.ok else 0.0
 
     def _window(self) -> list[int]:
         n = len(self.graph)

@@ -17,6 +17,9 @@ class MotionParams:
     min_weight: float = 20.0  # below this total weight (pixel count) the alignment is refused
     flow_downscale: int = 2  # a non-keyframe's flow is computed at 1/this of the working resolution: frames
     # arrive as half-size lite images, so full-resolution flow would only add cost (4x) to upsampled pixels
+    max_speed_growth: float = 4.0  # a tracked pose farther from its reference keyframe than this x mapping's speed
+    # (Reference.speed) x their time apart is refused for the bounded prediction, as a keyframe's step is
+    # (FrontendParams.max_step_growth): PnP on a view the synthetic person fills put frames 17,000 map units away
 
 
 @dataclass(frozen=True)
@@ -123,6 +126,11 @@ class FrontendParams:
     # KITTI flow at half the working size against medium's 25 ms (one thread); bench/frontend.py --track --live
     # --map-lag 2 on KITTI 07: edge flows 18.7 -> 7.7 s, ATE 0.437 -> 0.481 m
     live_iterations: int = 3  # LM iterations of the window BA per real-time keyframe
+    weak_keyframe_gap: float = 2.0  # a keyframe its flow barely supports (less than relocalise.below_share of the
+    # grid, or an implausible step) right after well-supported ones becomes a frame again while it comes within
+    # this x the recent keyframe spacing of the keyframe before (Frontend._lost_support): such keyframes come every
+    # frame while something fills the view (the synthetic person), their flows are of its motion, and in the
+    # window BA they broke the map's scale; 0: never
     live_max_deferred: int = 3  # a keyframe may leave its window BA to a later one (KeyframeInput.defer_ba) at
     # most this many times in a row
     live_window: int = 12  # keyframes in a real-time stream's sliding window: BA cost grows with the window's

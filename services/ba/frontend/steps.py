@@ -84,3 +84,11 @@ def bounded_prediction(graph: KeyframeGraph, k: int) -> torch.Tensor:
         rel = rel.clone()
         rel[:3, 3] *= allowed / length
     return se3.orthonormalize(graph.poses[k - 1] @ rel)
+
+
+def early(graph: KeyframeGraph, k: int, factor: float) -> bool:
+    """Keyframe ``k`` comes within ``factor`` x the median spacing of the six keyframes before it (time)."""
+    if k < 3:
+        return False
+    stamps = torch.tensor(graph.stamps[max(0, k - 7):k], dtype=torch.float64)
+    return gap(graph, k) < factor * float(stamps.diff().median())

@@ -47,6 +47,7 @@ class Reference(NamedTuple):
     image: np.ndarray  # (H, W) uint8 grey at working resolution
     previous: tuple[int, np.ndarray] | None = None  # (t_ns, world_from_cam) of the keyframe before: its motion
     known: np.ndarray | None = None  # (h, w) 1 where the disparity is measured, 0 where it was only filled in
+    speed: float | None = None  # mapping's keyframe speed (length per ns, steps.reference_speed); None: not yet known
 
     def on_host(self) -> "Reference":
         """The same reference with numpy float64 arrays (mapping builds it from its graph's tensors)."""
@@ -64,6 +65,7 @@ class Tracked(NamedTuple):
     ok: bool  # False: too little flow to align; the pose is the constant-velocity prediction
     target: np.ndarray | None = None  # (h, w, 2) float32: where the reference's grid cells landed (grid coords)
     confidence: np.ndarray | None = None  # (h, w) float32: their confidence (flow and photometric agreement)
+    refused: bool = False  # its flow or PnP pose lay beyond mapping's speed (Tracker._plausible): the prediction
 
 
 MAX_PROMOTED = 64  # keyframe poses tracking remembers, to correct its carried-over reference by mapping's
@@ -212,7 +214,8 @@ class Tracker:
             return
         ref = self.reference
         disparity, known = propagate_disparity(ref.pose, pose, ref.disparity, ref.intrinsics)
-        self._head = Reference(seq, stamp, pose, disparity, ref.intrinsics, image, (ref.stamp, ref.pose), known)
+        self._head = Reference(seq, stamp, pose, disparity, ref.intrinsics, image, (ref.stamp, ref.pose), known,
+                               ref.speed)
         self._use(self._head)
 
     def _oldest_kept(self) -> int:
@@ -288,19 +291,33 @@ class Tracker:
         below = self.relocalise.track_below_share
         if below > 0 and self.lost:
             out = self._relocalise(seq, stamp, grey, res, ft, measured)
+            if out is not None and not self._plausible(out.pose, stamp):
+                out = Tracked(seq, stamp, guess, ref.seq, False, refused=True)
             if out is not None:
                 self._history = (self._history + [out])[-2:]
                 # found again once the prediction's own flow holds a frame
                 self.lost = out.target is None or res.weight < below * cells
                 return out
         ok = _holds(res, cells)
+        refused = ok and not self._plausible(res.pose, stamp)
+        ok = ok and not refused
         pose = res.pose if ok else guess
         # the flow goes with the pose: mapping can solve the frame again against the reference's refined depth
         # without a flow of its own (frames.FramePoses.align)
-        out = Tracked(seq, stamp, pose, ref.seq, ok, ft.target, measured)
+        out = Tracked(seq, stamp, pose, ref.seq, ok, ft.target, measured, refused)
         self._history = (self._history + [out])[-2:]
         self.lost = below > 0 and (self.lost or not ok) and not (ok and res.weight >= below * cells)
         return out
+
+    def _plausible(self, pose: np.ndarray, stamp: int) -> bool:
+        """``pose`` lies within ``max_speed_growth`` x mapping's speed x the time from the reference of it. Flow
+        that holds and PnP with enough inliers can still slide far along what a view barely constrains (a person
+        filling it); kept, such a pose also becomes the next frame's prediction."""
+        ref = self.reference
+        if ref.speed is None or self.params.max_speed_growth <= 0:
+            return True
+        reach = self.params.max_speed_growth * ref.speed * max(abs(stamp - ref.stamp), 1)
+        return float(np.linalg.norm(pose[:3, 3] - ref.pose[:3, 3])) <= reach
 
     def _relocalise(self, seq: int, stamp: int, grey: np.ndarray, res, ft, measured) -> Tracked | None:
         """The frame's pose from PnP against the reference (:mod:`relocalise`), when the flow aligned from the
