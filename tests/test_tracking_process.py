@@ -44,8 +44,9 @@ def _track(tracker, world, frames):
 
 
 def test_a_reference_crosses_the_pipe_unchanged(world):
-    ref = _reference(world, 0)._replace(previous=(5, np.eye(4)))
+    ref = _reference(world, 0)._replace(previous=(5, np.eye(4)), speed=2e-10)
     back = unpack_reference(pickle.loads(pickle.dumps(pack_reference(ref))))
+    assert back.speed == ref.speed
     for name in ("pose", "disparity", "intrinsics"):
         assert np.array_equal(getattr(back, name), getattr(ref, name))
     assert back.seq == ref.seq and np.array_equal(back.image, ref.image) and np.array_equal(back.previous[1],
@@ -75,6 +76,15 @@ def test_the_child_tracks_as_the_thread_does_to_the_exact_trajectory(world, proc
         assert np.allclose(world.poses[0] @ a.ref_from_cam, a.pose)  # relative to the reference keyframe
     predicted = process.predict(world.render(6).t_ns)
     assert predicted is not None and np.allclose(predicted, local.predict(world.render(6).t_ns), atol=1e-9)
+
+
+def test_a_pose_the_child_refuses_for_mappings_speed_comes_back_marked(world, process):
+    """Tracking's speed bound (tests/test_ba_tracker.py) holds in the child too, and the parent learns which frames
+    kept the prediction for it (the tracking loop counts and logs them)."""
+    ref = _reference(world, 0)
+    process.set_reference(ref._replace(speed=1e-6 / max(world.render(1).t_ns - ref.stamp, 1)))
+    out = _track(process, world, [1])[0]
+    assert not out.ok and out.refused and out.ref_from_cam is None
 
 
 def test_a_killed_child_is_started_again_from_the_last_reference(world, process):
