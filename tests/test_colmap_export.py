@@ -8,6 +8,7 @@ import pycolmap
 import pytest
 
 from services.mapstore.core.keyframe import KeyframeDepth
+from services.mapstore import colmap
 from services.mapstore.colmap import ColmapImage, ColmapParams, ColmapWriter, read_colmap, visible_points
 from services.mapstore.export import export_all
 from services.synth import SynthConfig, SynthWorld
@@ -171,3 +172,25 @@ def test_a_model_without_map_points_is_read_too(tmp_path, scene):
     rec = pycolmap.Reconstruction(res.colmap)
     assert rec.num_images() == len(KEYFRAMES) and rec.num_points3D() == 0
     assert all(im.num_points2D() == 0 for im in rec.images.values())
+
+
+def test_points_written_a_batch_at_a_time_are_the_model_written_at_once(tmp_path, scene, monkeypatch):
+    """points3D is formatted a batch of points at a time (the binary's records interleaved without a Python loop
+    over points): batches of a few points write the same bytes as one batch of all of them, and COLMAP reads it."""
+    whole = export(tmp_path / "whole", scene)
+    monkeypatch.setattr(colmap, "TRACK_BATCH", 4 * 7)  # 7 track elements a batch: many batches, some of one point
+    batched = export(tmp_path / "batched", scene)
+    for name in ("points3D.txt", "points3D.bin"):
+        assert (whole / name).read_bytes() == (batched / name).read_bytes()
+    rec = pycolmap.Reconstruction(batched)
+    assert rec.num_points3D() > len(scene[1]) // 2
+    assert all(len(p.track.elements) >= 2 for p in rec.points3D.values())
+
+
+def test_batches_cover_every_group_once_within_the_row_limit():
+    lengths = np.array([3, 1, 5, 2, 2, 9, 1])
+    ranges = list(colmap._batches(lengths, 5))
+    assert [i for a, b in ranges for i in range(a, b)] == list(range(len(lengths)))
+    # a group longer than the limit is a batch of its own; the others stay within it
+    assert all(lengths[a:b].sum() <= 5 or b - a == 1 for a, b in ranges)
+    assert ranges == [(0, 2), (2, 3), (3, 5), (5, 6), (6, 7)]

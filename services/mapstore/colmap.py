@@ -201,17 +201,21 @@ class ColmapWriter:
         rows["id"], rows["xyz"], rows["rgb"] = point_ids, self.xyz[point_ids - 1], self.rgb[point_ids - 1]
         rows["error"] = 0.0  # the 2D points are these points' projections: no reprojection error by construction
         rows["length"] = np.diff(np.append(starts, len(elements)))
-        bounds = np.append(starts, len(elements)).tolist()
+        bounds = np.append(starts, len(elements))
 
         def records() -> Iterator[tuple[bytes, bytes]]:
-            # one point is a row (51 bytes) then its track (8 bytes an element)
-            track_lines = _grouped_lines([elements[a:b] for a, b in zip(bounds[:-1], bounds[1:])],
-                                         ("image_id", "point2D_idx"), (0, 0))
-            for row, pid, xyz, rgb, start, end, track in zip(rows, point_ids.tolist(), rows["xyz"].tolist(),
-                                                             rows["rgb"].tolist(), bounds[:-1], bounds[1:],
-                                                             track_lines):
-                line = f"{pid} {xyz[0]!r} {xyz[1]!r} {xyz[2]!r} {rgb[0]} {rgb[1]} {rgb[2]} 0 ".encode() + track
-                yield line, row.tobytes() + elements[start:end].tobytes()
+            # a batch of points at a time: a long stream's model has ~10^5 points, and a record per point cost
+            # ~25 µs of Python each (bench/export.py)
+            for first, last in _batches(rows["length"], TRACK_BATCH // 4):  # the binary's byte indices: ~50 MB
+                batch, a, b = rows[first:last], int(bounds[first]), int(bounds[last])
+                track = elements[a:b]
+                text, offsets = format_rows([track["image_id"], track["point2D_idx"]], (0, 0))
+                ends = offsets[bounds[first:last + 1] - a].tolist()
+                # xyz as repr: the shortest text that reads back as the binary's double
+                heads = [f"{pid} {x!r} {y!r} {z!r} {r} {g} {b_} 0 ".encode() for pid, (x, y, z), (r, g, b_)
+                         in zip(batch["id"].tolist(), batch["xyz"].tolist(), batch["rgb"].tolist())]
+                lines = b"\n".join(head + text[begin:end - 1] for head, begin, end in zip(heads, ends[:-1], ends[1:]))
+                yield lines, _interleaved(batch, track)
 
         mean = len(elements) / max(len(point_ids), 1)
         self._write("points3D", ["3D point list with one line of data per point:", "  POINT3D_ID, X, Y, Z, R, G, B, "
@@ -229,6 +233,36 @@ class ColmapWriter:
                 text.write(line)
                 text.write(b"\n")
                 binary.write(record)
+
+
+TRACK_BATCH = 1 << 18
+"""Track elements (or 2D points) formatted at once: a long stream's model holds ~5 M."""
+
+
+def _batches(lengths: np.ndarray, max_rows: int) -> Iterator[tuple[int, int]]:
+    """Consecutive [first, last) ranges of groups of ``lengths`` rows, each of at most ``max_rows`` rows (or one
+    group, when a group alone has more)."""
+    ends = np.cumsum(lengths)
+    first = 0
+    while first < len(lengths):
+        before = int(ends[first - 1]) if first else 0
+        last = max(first + 1, int(np.searchsorted(ends, before + max_rows, side="right")))
+        yield first, last
+        first = last
+
+
+def _interleaved(rows: np.ndarray, elements: np.ndarray) -> bytes:
+    """The binary records of points3D.bin for ``rows`` (_POINT3D_BIN, their ``length`` elements each) and their
+    track ``elements`` (_TRACK_BIN, grouped by point): each row followed by its elements."""
+    row_size, element_size = rows.dtype.itemsize, elements.dtype.itemsize
+    lengths = rows["length"].astype(np.int64)
+    out = np.empty(len(rows) * row_size + len(elements) * element_size, np.uint8)
+    row_at = np.arange(len(rows)) * row_size + np.concatenate([[0], np.cumsum(lengths)[:-1]]) * element_size
+    out[(row_at[:, None] + np.arange(row_size)).ravel()] = rows.view(np.uint8)
+    element_at = np.repeat(row_at + row_size - np.concatenate([[0], np.cumsum(lengths)[:-1]]) * element_size,
+                           lengths) + np.arange(len(elements)) * element_size
+    out[(element_at[:, None] + np.arange(element_size)).ravel()] = elements.view(np.uint8)
+    return out.tobytes()
 
 
 def _grouped_lines(groups: list[np.ndarray], fields: tuple[str, ...], decimals: tuple[int, ...],

@@ -117,7 +117,8 @@ def export_final(state: MapState, cfg: MapstoreSettings) -> None:
     """ba's final graph is in and the stream complete: the export, before ba's EOS (ba solves its frames again
     meanwhile; the export needs only the keyframes). Its seconds go into this stage's EOS."""
     began = time.monotonic()
-    state.refresh(now=True)  # the final graph and the last codes may wait (refresh_period_s, or in this batch)
+    re_fused = state.refresh(now=True)  # the final graph and the last codes may wait (refresh_period_s, or in this
+    fused_s = time.monotonic() - began  # batch)
     try:
         if cfg.export_dir:
             export_state(state, Path(cfg.export_dir))
@@ -125,7 +126,8 @@ def export_final(state: MapState, cfg: MapstoreSettings) -> None:
         log.exception("export failed", extra={"stream": cfg.stream, "export_dir": cfg.export_dir})
     state.final_export_s = time.monotonic() - began
     log.info("map exported on ba's final graph",
-             extra={"stream": cfg.stream, "seconds": round(state.final_export_s, 2)})
+             extra={"stream": cfg.stream, "seconds": round(state.final_export_s, 2), "keyframes_re_fused": re_fused,
+                    "re_fusion_s": round(fused_s, 2)})
 
 
 def finish_stream(state: MapState, msg: Eos, cfg: MapstoreSettings) -> list[tuple[str, Message]]:
