@@ -12,7 +12,8 @@ compiled) would be a large runtime dependency of the mapstore; tests/test_colmap
 Both files are streamed as they are formatted: images a record at a time, points3D a batch of points at a time
 (its binary records interleaved by index arithmetic), and the text's numbers a batch at a time
 (:mod:`services.common.number_text`): a long stream's model holds ~5 M observations, 9 s of `repr` and ~200 MB
-of text held whole before, and a record per point was ~25 µs of Python. 2D points are written to 1e-6 px, the same in the text and the binary model.
+of text held whole before, and a record per point was ~25 µs of Python. 2D points are written to 1e-6 px, the
+same in the text and the binary model.
 """
 
 from __future__ import annotations
@@ -207,7 +208,7 @@ class ColmapWriter:
         def records() -> Iterator[tuple[bytes, bytes]]:
             # a batch of points at a time: a long stream's model has ~10^5 points, and a record per point cost
             # ~25 µs of Python each (bench/export.py)
-            for first, last in _batches(rows["length"], TRACK_BATCH // 4):  # the binary's byte indices: ~50 MB
+            for first, last in _batches(rows["length"], TRACK_BATCH // 4):  # the binary's byte indices: ~20 MB
                 batch, a, b = rows[first:last], int(bounds[first]), int(bounds[last])
                 track = elements[a:b]
                 text, offsets = format_rows([track["image_id"], track["point2D_idx"]], (0, 0))
@@ -258,31 +259,28 @@ def _interleaved(rows: np.ndarray, elements: np.ndarray) -> bytes:
     row_size, element_size = rows.dtype.itemsize, elements.dtype.itemsize
     lengths = rows["length"].astype(np.int64)
     out = np.empty(len(rows) * row_size + len(elements) * element_size, np.uint8)
-    row_at = np.arange(len(rows)) * row_size + np.concatenate([[0], np.cumsum(lengths)[:-1]]) * element_size
+    # row i is preceded by i rows and the elements of points before it; element j by j elements and the rows of
+    # its own point and those before
+    elements_before = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+    row_at = np.arange(len(rows)) * row_size + elements_before * element_size
+    element_at = np.repeat(np.arange(1, len(rows) + 1) * row_size, lengths) + np.arange(len(elements)) * element_size
     out[(row_at[:, None] + np.arange(row_size)).ravel()] = rows.view(np.uint8)
-    element_at = np.repeat(row_at + row_size - np.concatenate([[0], np.cumsum(lengths)[:-1]]) * element_size,
-                           lengths) + np.arange(len(elements)) * element_size
     out[(element_at[:, None] + np.arange(element_size)).ravel()] = elements.view(np.uint8)
     return out.tobytes()
 
 
 def _grouped_lines(groups: list[np.ndarray], fields: tuple[str, ...], decimals: tuple[int, ...],
-                   batch_rows: int = 1 << 18) -> Iterator[bytes]:
+                   batch_rows: int = TRACK_BATCH) -> Iterator[bytes]:
     """Each group's rows (a structured array) as one line of text, its ``fields`` separated by spaces: formatted
     a batch of groups at a time (:func:`format_rows`; a long stream's model holds ~5 M rows, so at most
     ``batch_rows`` of their characters exist at once)."""
-    first = 0
-    while first < len(groups):
-        last, rows = first, 0
-        while last < len(groups) and (last == first or rows + len(groups[last]) <= batch_rows):
-            rows += len(groups[last])
-            last += 1
+    lengths = np.array([len(g) for g in groups], np.int64)
+    for first, last in _batches(lengths, batch_rows):
         batch = np.concatenate(groups[first:last])
         text, offsets = format_rows([batch[f] for f in fields], decimals)
-        bounds = offsets[np.cumsum([0] + [len(g) for g in groups[first:last]])].tolist()
+        bounds = offsets[np.concatenate([[0], np.cumsum(lengths[first:last])])].tolist()
         for begin, end in zip(bounds[:-1], bounds[1:]):
             yield text[begin:max(begin, end - 1)]
-        first = last
 
 
 def write_colmap(folder: Path, images: dict[int, ColmapImage], xyz: np.ndarray | None = None,

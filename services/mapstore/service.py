@@ -117,8 +117,9 @@ def export_final(state: MapState, cfg: MapstoreSettings) -> None:
     """ba's final graph is in and the stream complete: the export, before ba's EOS (ba solves its frames again
     meanwhile; the export needs only the keyframes). Its seconds go into this stage's EOS."""
     began = time.monotonic()
-    re_fused = state.refresh(now=True)  # the final graph and the last codes may wait (refresh_period_s, or in this
-    fused_s = time.monotonic() - began  # batch)
+    # the final graph and the last codes may wait (refresh_period_s, or in this batch)
+    re_fused = state.refresh(now=True)
+    fused_s = time.monotonic() - began
     try:
         if cfg.export_dir:
             export_state(state, Path(cfg.export_dir))
