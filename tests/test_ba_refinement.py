@@ -174,7 +174,7 @@ def test_spare_time_runs_the_global_ba_once_enough_keyframes_joined_and_never_fo
     assert rmse < 0.01 * length
     # the end of stream only settles what the background BAs refined: its BA is bounded in time then
     bounds = []
-    fe._global_ba = lambda bound, run=fe._global_ba: bounds.append(bound) or run(bound)
+    fe._global_ba = lambda bound, keyframes=None, run=fe._global_ba: bounds.append(bound) or run(bound, keyframes)
     fe.finish()
     assert bounds == [params.settled_global_ba_s] and params.settled_global_ba_s > 0
     assert params.global_ba_s == 0 and live._end_bound_s() == 0  # unbounded where no background BA ran
@@ -248,3 +248,40 @@ def test_end_of_stream_solves_every_measured_frame_again_with_the_flow_it_has():
     print(f"frames' ATE {first:.5f} m with half solved under a short focal and half moved, {realigned:.5f} m "
           f"solved again")
     assert realigned < 0.5 * first
+
+
+@pytest.mark.parametrize("settle_all", [False, True])
+def test_after_background_bas_the_end_of_stream_ba_spans_the_keyframes_since_the_last_and_a_window(settle_all):
+    """Once background BAs refined the held keyframes during the stream, the end-of-stream BA spans only those that
+    joined since the last one and a window before them, the oldest of them its gauge: the keyframes before keep
+    their poses and maps (its first iteration over 100 keyframes took 4.5 s, past its 2 s bound). With
+    ``settle_all_keyframes`` it spans every held keyframe again. The trajectory stays on the truth either way."""
+    from services.ba.frontend.params import GraphParams
+
+    world, msgs = synth_stream(n_frames=60, rendered=36, every=3, width=256)
+    params = FrontendParams(graph=GraphParams(window=3), background_ba_every=4, focal_after=1000,
+                            global_ba=BAParams(iterations=3), settle_all_keyframes=settle_all)
+    fe = Frontend(params)
+    for msg in msgs[:-1]:
+        if isinstance(msg, Keyframe):
+            fe.add_keyframe(KeyframeInput(msg.seq, msg.t_ns, msg.image, msg.intrinsics, msg.codes))
+            fe.refine_globally()
+        else:
+            fe.add_frame(FrameInput(msg.seq, msg.t_ns, msg.image))
+    g = fe.graph
+    gauge = len(g) - fe._since_global - 3
+    assert fe._background_bas >= 2 and gauge >= 2  # keyframes before the span to leave alone
+    poses, disparity = [p.clone() for p in g.poses], [d.clone() for d in g.disparity]
+    settled = fe.settle_keyframes()
+    for k in range(len(g)):
+        pose_moved = float((g.poses[k] - poses[k]).abs().max())
+        map_moved = float((g.disparity[k] - disparity[k]).abs().max())
+        if settle_all:
+            assert (pose_moved == 0) == (k == 0), (k, pose_moved)  # every keyframe but the first, the gauge
+        else:
+            assert (pose_moved == 0) == (k <= gauge), (k, pose_moved)
+            assert (map_moved == 0) == (k < gauge), (k, map_moved)
+    assert settled.graph.kf_seqs.tolist() == g.seqs  # every keyframe's final pose goes out
+    final = fe.solve_frames()
+    rmse, length = ate_of(world, final.poses.frame_seqs, final.poses.poses)
+    assert rmse < 0.01 * length

@@ -103,6 +103,9 @@ class BaSettings(BASettings):
     settled_global_ba_s: float = FrontendParams.settled_global_ba_s
     """Once background global BAs ran, the end-of-stream BA stays within this many seconds (0: only ``global_ba_s``
     bounds it)."""
+    settle_all_keyframes: bool = FrontendParams.settle_all_keyframes
+    """Once background global BAs ran, the end-of-stream BA still spans every held keyframe (True), or only those
+    since the last background BA and a window before them (False)."""
     live_flow_preset: Literal["ultrafast", "fast", "medium"] = FrontendParams.live_flow_preset
     """Real-time streams: OpenCV DIS preset of keyframe edge flows."""
     live_window: int = FrontendParams.live_window
@@ -136,6 +139,9 @@ class BaSettings(BASettings):
     """A keyframe whose flow supports less than ``relocalise_below_share`` of the grid (or whose step is refused),
     right after keyframes supported by more than twice that, becomes a frame again while it comes within this x the
     recent keyframe spacing (0: never)."""
+    burst_gap: float = FrontendParams.burst_gap
+    """A keyframe that comes within this x the median spacing of the six keyframes before it becomes a frame again,
+    whatever its flow's support: something filling the view makes keyframes a frame apart (0: never)."""
     tracking_max_speed_growth: float = MotionParams.max_speed_growth
     """Tracking refuses a pose farther from its reference than this x mapping's keyframe speed x their time apart
     (the prediction is kept); 0 or less: no bound."""
@@ -204,6 +210,7 @@ class BaSettings(BASettings):
                                          max_keyframes=self.init_max_keyframes),
             motion=MotionParams(huber=self.motion_huber, max_speed_growth=self.tracking_max_speed_growth),
             ba=self.ba_params(), weak_keyframe_gap=self.weak_keyframe_gap,
+            burst_gap=self.burst_gap,
             global_ba=self.ba_params(global_ba=True), flow=self.flow_params(), focal_after=self.focal_after,
             focal_until=self.focal_until, ark_with_focal=self.ark_with_focal, keep_keyframes=self.keep_keyframes,
             live_flow_downscale=self.live_flow_downscale, live_iterations=self.live_iterations,
@@ -212,6 +219,7 @@ class BaSettings(BASettings):
             live_calibration=self.live_calibration, background_ba_every=self.background_ba_every,
             background_ba_keyframes=self.background_ba_keyframes,
             background_ba_s=self.background_ba_s, settled_global_ba_s=self.settled_global_ba_s,
+            settle_all_keyframes=self.settle_all_keyframes,
             global_ba_s=self.global_ba_s, relocalise=self.relocalise_params())
 
     def relocalise_params(self) -> RelocaliseParams:

@@ -129,7 +129,7 @@ class MapState(FoldingPolicy):
         for records, last in self.store.iter_keyframes(RESTART_PAGE):
             for r in records:
                 content = r.content
-                if r.folded is not None and r.folded < 2 and content is not None:  # folded without its codes
+                if r.folded == 1 and content is not None:  # folded for geometry only: without its codes
                     content = KeyframeContent(r.kf_id, content.t_ns, None, content.colours, content.image_hw, -1)
                 if content is not None:
                     self.map.add_content(content)

@@ -92,6 +92,10 @@ class Frontend(Refinement):
             logger.info("keyframe its flow barely supports turned into a frame",
                         extra={"seq": upkeep.to_frame(g, self.frames, k), "share": round(support, 3)})
             return Update()
+        if self._in_burst(k):
+            logger.info("keyframe in a burst turned into a frame",
+                        extra={"seq": upkeep.to_frame(g, self.frames, k), "share": round(support, 3)})
+            return Update()
         self._supports = (self._supports + (support,))[-6:]
         calibrating = not self._calibrated and len(g) >= self.params.focal_after and self.params.ba.optimise_focal
         if defer and not calibrating and self._deferred < self.params.live_max_deferred:
@@ -239,6 +243,12 @@ class Frontend(Refinement):
         below = self.params.relocalise.below_share
         return (support < below and len(self._supports) >= 3 and float(np.median(self._supports)) > 2 * below
                 and steps.early(self.graph, k, self.params.weak_keyframe_gap))
+
+    def _in_burst(self, k: int) -> bool:
+        """Keyframe ``k`` comes within ``burst_gap`` x the recent keyframe spacing: keyframes a frame apart where
+        they came several apart are something moving through the view (its flow may be well supported: a rigid
+        thing filling the view aligns like camera motion), and kept they become the window's gauge."""
+        return steps.early(self.graph, k, self.params.burst_gap)
 
     def _align_keyframe(self, k: int) -> float:
         """Keyframe ``k``'s pose from its flow to the keyframe before. Returns the share of the grid that supports

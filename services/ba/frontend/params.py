@@ -97,6 +97,8 @@ class FrontendParams:
     # seconds (0: global_ba_s alone bounds it): they gave every held keyframe its iterations
     # during the stream, so the end only settles the newest (a lossless 2,000-frame room orbit: 24 s otherwise;
     # at 2 s its final ATE is 0.079 m against 0.076 at 5 s, one run each, docs/BENCHMARKS.md)
+    settle_all_keyframes: bool = False  # True: the end-of-stream BA spans every held keyframe even after background
+    # BAs; False: the keyframes since the last background BA and a window before them (Refinement._settle_span)
     realign_focal_change: float = 0.05  # end of stream: frames aligned under a focal this far (relative) from the
     # final one are aligned again with their flow (a frame's relative pose is solved on one camera model)
     final_align_s: float = 8.0  # at end of stream, frames posed without mapping's own flow (tracked on a live
@@ -131,6 +133,13 @@ class FrontendParams:
     # this x the recent keyframe spacing of the keyframe before (Frontend._lost_support): such keyframes come every
     # frame while something fills the view (the synthetic person), their flows are of its motion, and in the
     # window BA they broke the map's scale; 0: never
+    burst_gap: float = 0.5  # a keyframe that comes within this x the median spacing of the six keyframes before it
+    # becomes a frame again, whatever its flow's support (Frontend._in_burst): a rigid thing filling the view (the
+    # 3,000-frame world's person, its flow supported by 47-79 % of the grid) makes keyframes a frame apart where
+    # they came 8-10 apart, and as the window's oldest, its gauge, they broke the map (frames 1100-1499 in one
+    # process: 0.12-2.09 m ATE off, 0.19 m at 0.34, 0.044 m at 0.5, three runs each; docs/BENCHMARKS.md). A camera
+    # that speeds up still gets a keyframe at this share of the spacing, which then adapts within a few
+    # keyframes; 0: never
     live_max_deferred: int = 3  # a keyframe may leave its window BA to a later one (KeyframeInput.defer_ba) at
     # most this many times in a row
     live_window: int = 12  # keyframes in a real-time stream's sliding window: BA cost grows with the window's

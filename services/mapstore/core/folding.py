@@ -85,7 +85,9 @@ class Folding:
             content = self.contents.pop(kf_id, None)
             if content is not None:
                 self.folded_count += 1
-                self.folded_without_codes += entry is None or entry[0].codes is None
+                # its codes never came; one ba turned into a frame before any graph named it (never fused:
+                # no contribution) has its codes all the same
+                self.folded_without_codes += not content.has_codes
             for table in (self._carved, self._views, self._unit_codes):
                 table.pop(kf_id, None)
         self.folded_upto = max(self.folded_upto, upto)

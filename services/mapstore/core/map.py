@@ -114,7 +114,7 @@ class KeyframeMap(Carving, Folding):
         self._frozen: dict[int | None, FrozenSums] = {}  # folded keyframes' sums per PCA version (None: no codes)
         self.folded_upto = -1  # the newest folded keyframe id: every keyframe at or below it is folded
         self.folded_count = 0  # keyframes folded (with content)
-        self.folded_without_codes = 0  # of those, folded without codes in the map (geometry only, or nothing)
+        self.folded_without_codes = 0  # of those, folded before their codes came (geometry only, or nothing)
 
     # ----- inputs -------------------------------------------------------------------------
     def add_content(self, content: KeyframeContent) -> None:
