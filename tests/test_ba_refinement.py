@@ -269,7 +269,7 @@ def test_after_background_bas_the_end_of_stream_ba_spans_the_keyframes_since_the
         else:
             fe.add_frame(FrameInput(msg.seq, msg.t_ns, msg.image))
     g = fe.graph
-    gauge = len(g) - fe._since_global - 3
+    gauge = len(g) - fe._since_global - params.graph.window
     assert fe._background_bas >= 2 and gauge >= 2  # keyframes before the span to leave alone
     poses, disparity = [p.clone() for p in g.poses], [d.clone() for d in g.disparity]
     settled = fe.settle_keyframes()

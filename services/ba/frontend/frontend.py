@@ -88,12 +88,10 @@ class Frontend(Refinement):
         if not self.initialised:
             return self._try_initialise()
         support = self._align_keyframe(k)
-        if self._lost_support(k, support):
-            logger.info("keyframe its flow barely supports turned into a frame",
-                        extra={"seq": upkeep.to_frame(g, self.frames, k), "share": round(support, 3)})
-            return Update()
-        if self._in_burst(k):
-            logger.info("keyframe in a burst turned into a frame",
+        turned = ("keyframe its flow barely supports" if self._lost_support(k, support)
+                  else "keyframe in a burst" if self._in_burst(k) else None)
+        if turned:
+            logger.info(f"{turned} turned into a frame",
                         extra={"seq": upkeep.to_frame(g, self.frames, k), "share": round(support, 3)})
             return Update()
         self._supports = (self._supports + (support,))[-6:]
