@@ -179,6 +179,24 @@ def test_incremental_fusion_equals_brute_force_after_updates():
         np.testing.assert_allclose(fused.codes[i], z, rtol=1e-4, atol=1e-4)
 
 
+def test_maps_and_poses_resent_unchanged_refuse_nothing_and_one_changed_value_refuses_its_keyframe():
+    """ba's final graph resends every held keyframe's maps and pose; only those its BA moved are fused again."""
+    m = build_map(MapParams(fusion=FusionParams(voxel_size=0.3, voxel_mode="absolute")), n=5, seed=6)
+    copies = {k: KeyframeDepth(d.disparity.copy(), d.intrinsics.copy(), d.static_weight.copy(), d.confidence.copy())
+              for k, d in m.depths.items()}  # equal values in new arrays, as a decoded message carries them
+    for k, depth in copies.items():
+        m.set_depth(k, depth)
+        m.set_pose(k, m.poses[k].copy())
+    assert m.refresh().refreshed == []
+    for field in ("disparity", "intrinsics", "static_weight", "confidence"):
+        changed = {f: getattr(copies[3], f).copy() for f in ("disparity", "intrinsics", "static_weight", "confidence")}
+        changed[field].flat[-1] *= 1.01
+        m.set_depth(3, KeyframeDepth(**changed))
+        assert 3 in m.refresh().refreshed, field
+        m.set_depth(3, copies[3])
+        m.refresh()
+
+
 def test_rebuild_equals_incremental():
     params = MapParams(fusion=FusionParams(voxel_size=0.3, voxel_mode="absolute"))
     m = build_map(params, n=4, seed=5)

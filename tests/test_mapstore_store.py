@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import os
 import signal
 import sqlite3
@@ -15,7 +16,7 @@ import pytest
 
 from services.mapstore.core.keyframe import KeyframeContent, KeyframeDepth
 from services.mapstore.core.scoring import PcaBasis
-from services.mapstore.store import MIGRATIONS, SCHEMA_VERSION, MapStore, migrate, schema_version
+from services.mapstore.store import MIGRATIONS, SCHEMA_VERSION, MapStore, from_blob, migrate, schema_version, to_blob
 
 REPO = Path(__file__).resolve().parents[1]
 INTR = np.array([100.0, 101.0, 63.5, 47.5])
@@ -74,6 +75,26 @@ def test_write_reopen_identical(tmp_path):
     assert loaded.meta == {"voxel_size": "0.125"}
     np.testing.assert_array_equal(loaded.bases[1].components, basis.components)
     assert loaded.bases[1].backbone == "dinov2_vits14"
+
+
+@pytest.mark.parametrize("array", [np.arange(12, dtype=np.float16).reshape(3, 4), np.zeros((0, 3)),
+                                   np.ones((2, 3, 4), np.uint8), np.arange(5, dtype=">i4"),
+                                   np.asfortranarray(np.arange(6.0).reshape(2, 3))])
+def test_blobs_read_back_as_numpy_reads_them(array):
+    """from_blob parses each distinct .npy header once: the arrays are np.load's, writable, from our blobs and from
+    .npy files numpy writes (a Fortran-ordered one and a version 2 header included)."""
+    for blob in (to_blob(array), _npy(array), _npy(array, version=(2, 0))):
+        expected, got = np.load(io.BytesIO(blob)), from_blob(blob)
+        assert got.dtype == expected.dtype and got.shape == expected.shape and got.flags.writeable
+        np.testing.assert_array_equal(got, expected)
+    with pytest.raises(ValueError, match="not an .npy blob"):
+        from_blob(b"not numpy at all")
+
+
+def _npy(array: np.ndarray, version: tuple[int, int] | None = None) -> bytes:
+    buf = io.BytesIO()
+    np.lib.format.write_array(buf, array, version=version, allow_pickle=False)
+    return buf.getvalue()
 
 
 def test_database_is_in_wal_mode_with_current_schema(tmp_path):

@@ -68,12 +68,15 @@ def visible_points(points_world: np.ndarray, cam_from_world: np.ndarray, depth: 
     cells around the point instead gave 1 % fewer wrong observations at depth edges and 5 % fewer right ones on
     the synthetic room of tests/test_colmap_export.py.)"""
     h, w = depth.disparity.shape
-    proj = project(transform_points(cam_from_world, points_world), grid_intrinsics(depth.intrinsics))
-    col, row = np.rint(proj.u), np.rint(proj.v)  # NaN behind the camera: every comparison is False
-    idx = np.flatnonzero((proj.z > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h))
+    fx, fy, cx, cy = grid_intrinsics(depth.intrinsics)
+    # x, y, z as rows: a (3, 3) @ (3, N) product is twice as fast as (N, 3) @ (3, 3) here (most of the export)
+    x, y, z = cam_from_world[:3, :3] @ np.asarray(points_world, np.float64).T + cam_from_world[:3, 3:]
+    safe = np.where(z > 0, z, np.nan)  # NaN behind the camera: every comparison below is False
+    col, row = np.rint(x / safe * fx + cx), np.rint(y / safe * fy + cy)
+    idx = np.flatnonzero((z > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h))
     disp = depth.disparity[row[idx].astype(np.int64), col[idx].astype(np.int64)].astype(np.float64)
     z_kf = 1.0 / np.where(disp > 0, disp, np.inf)
-    return idx[(disp > 0) & (np.abs(proj.z[idx] - z_kf) <= rel_tolerance * z_kf)]
+    return idx[(disp > 0) & (np.abs(z[idx] - z_kf) <= rel_tolerance * z_kf)]
 
 
 _CAMERA_BIN = struct.Struct("<iiQQ")  # camera_id, model_id, width, height (then the params as doubles)

@@ -82,6 +82,13 @@ class KeyframeDepth:
         if np.asarray(self.intrinsics).shape != (4,):
             raise ValueError("intrinsics must be (4,) = (fx, fy, cx, cy)")
 
+    def same_as(self, other: "KeyframeDepth | None") -> bool:
+        """Every field equal to ``other``'s, value for value (a map resent unchanged)."""
+        return other is not None and all(
+            (a is None and b is None) or (a is not None and b is not None and np.array_equal(a, b))
+            for a, b in ((self.disparity, other.disparity), (self.intrinsics, other.intrinsics),
+                         (self.static_weight, other.static_weight), (self.confidence, other.confidence)))
+
 
 class AnchoredPoints(NamedTuple):
     """The usable cells of one keyframe (M of its h·w cells)."""

@@ -152,8 +152,10 @@ class KeyframeMap(Carving, Folding):
         return sorted(k for k, c in self.contents.items() if not c.has_codes)
 
     def set_depth(self, kf_id: int, depth: KeyframeDepth) -> None:
-        """Set a keyframe's latest disparity/weights (its grid must match its codes' grid); ignored once folded."""
-        if self.is_folded(kf_id):
+        """Set a keyframe's latest disparity/weights (its grid must match its codes' grid); ignored once folded, and
+        a no-op when unchanged (ba's final graph resends every held keyframe's maps; re-fusing the ~70 % its BA did
+        not move was most of the end of stream's re-fusion)."""
+        if self.is_folded(kf_id) or depth.same_as(self.depths.get(kf_id)):
             return
         self.depths[kf_id] = depth
         self._touch(kf_id)
