@@ -159,7 +159,8 @@ def test_the_capped_points_are_the_first_visible_ones_of_the_fixed_order(tmp_pat
     for k in KEYFRAMES:
         writer.add(cameras[k], depths[k])
     rank = np.argsort(writer._order)  # each point's place in the writer's fixed order
-    for (im, kept), k in zip(writer._images, KEYFRAMES):
+    for (im, seen), k in zip(writer._images, KEYFRAMES):
+        kept = seen.result()  # found on the writer's thread
         every = visible_points(points, np.linalg.inv(im.world_from_cam), depths[k], ColmapParams().rel_depth_tolerance)
         assert cap < len(every) < len(points) / 8
         np.testing.assert_array_equal(kept, np.sort(every[np.argsort(rank[every])[:cap]]))
