@@ -36,6 +36,7 @@ import csv
 import json
 import os
 import shlex
+import shutil
 import signal
 import subprocess
 import sys
@@ -89,8 +90,10 @@ def run_kmvipe(run: Run, out_root: Path, timeout_s: float | None) -> tuple[dict,
     shown = " ".join([*(f"{k}={shlex.quote(v)}" for k, v in run.env.items()),
                       "kmvipe", *map(shlex.quote, cmd[1:])])
     print(f"\n[{run.label}] $ {shown}", flush=True)
-    (out / "summary.json").unlink(missing_ok=True)
-    out.mkdir(parents=True, exist_ok=True)
+    # a fresh folder: a previous run's map.db there would be loaded, then kept aside by the new session (a
+    # 10,000-frame map: 26 s and ~500 MB of the mapstore counted in this run's first 1,000 frames)
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
     load_before = os.getloadavg()
     loads: list[float] = []
     began = time.monotonic()
