@@ -82,8 +82,8 @@ def test_write_reopen_identical(tmp_path):
                                    np.asfortranarray(np.arange(6.0).reshape(2, 3))])
 def test_blobs_read_back_as_numpy_reads_them(array):
     """from_blob parses each distinct .npy header once: the arrays are np.load's, writable, from our blobs and from
-    .npy files numpy writes (a Fortran-ordered one and a version 2 header included)."""
-    for blob in (to_blob(array), _npy(array), _npy(array, version=(2, 0))):
+    .npy files numpy writes (a Fortran-ordered one, version 2 and 3 headers included)."""
+    for blob in (to_blob(array), _npy(array), _npy(array, version=(2, 0)), _npy(array, version=(3, 0))):
         expected, got = np.load(io.BytesIO(blob)), from_blob(blob)
         assert got.dtype == expected.dtype and got.shape == expected.shape and got.flags.writeable
         np.testing.assert_array_equal(got, expected)

@@ -14,8 +14,8 @@ Both files are streamed as they are formatted: images a record at a time, points
 (:mod:`services.common.number_text`): a long stream's model holds ~5 M observations, 9 s of `repr` and ~200 MB
 of text held whole before, and a record per point was ~25 µs of Python. The points an image sees are found on a
 thread of the writer while the export reads the next keyframe, and images and points3D are written side by side:
-mostly numpy, so each leaves the GIL to the other (the 10,000-frame map's export 3.4 -> 2.7 s). 2D points are written to 1e-6 px, the
-same in the text and the binary model.
+mostly numpy, so each leaves the GIL to the other (the 10,000-frame map's export 3.4 -> 2.7 s). 2D points are
+written to 1e-6 px, the same in the text and the binary model.
 """
 
 from __future__ import annotations

@@ -93,16 +93,18 @@ def from_blob(blob: bytes | None) -> np.ndarray | None:
     every stored keyframe's; a restart loads them all)."""
     if blob is None:
         return None
+    if blob[:6] != b"\x93NUMPY":
+        raise ValueError(f"not an .npy blob (it starts {blob[:8]!r})")
     size = _NPY_HEADER_SIZE.get(blob[6:7])
-    if size is None:
-        raise ValueError(f"not an .npy blob (magic {blob[:8]!r})")
+    if size is None:  # a newer .npy version than numpy's 1.0 and 2.0 (utf-8 headers): numpy reads it
+        return np.load(io.BytesIO(blob), allow_pickle=False)
     offset = 8 + size.size + size.unpack_from(blob, 8)[0]
     dtype, shape, fortran = _npy_layout(blob[:offset])
     array = np.frombuffer(blob, dtype, count=int(np.prod(shape)), offset=offset).copy()
     return array.reshape(shape[::-1]).T if fortran else array.reshape(shape)
 
 
-_NPY_HEADER_SIZE = {b"\x01": struct.Struct("<H"), b"\x02": struct.Struct("<I"), b"\x03": struct.Struct("<I")}
+_NPY_HEADER_SIZE = {b"\x01": struct.Struct("<H"), b"\x02": struct.Struct("<I")}  # header length, by major version
 
 
 @functools.lru_cache(maxsize=256)
