@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections import defaultdict
 
 import numpy as np
@@ -189,9 +190,9 @@ def test_maps_and_poses_resent_unchanged_refuse_nothing_and_one_changed_value_re
         m.set_pose(k, m.poses[k].copy())
     assert m.refresh().refreshed == []
     for field in ("disparity", "intrinsics", "static_weight", "confidence"):
-        changed = {f: getattr(copies[3], f).copy() for f in ("disparity", "intrinsics", "static_weight", "confidence")}
-        changed[field].flat[-1] *= 1.01
-        m.set_depth(3, KeyframeDepth(**changed))
+        changed = getattr(copies[3], field).copy()
+        changed.flat[-1] *= 1.01
+        m.set_depth(3, dataclasses.replace(copies[3], **{field: changed}))
         assert 3 in m.refresh().refreshed, field
         m.set_depth(3, copies[3])
         m.refresh()

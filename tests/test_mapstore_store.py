@@ -16,7 +16,8 @@ import pytest
 
 from services.mapstore.core.keyframe import KeyframeContent, KeyframeDepth
 from services.mapstore.core.scoring import PcaBasis
-from services.mapstore.store import MIGRATIONS, SCHEMA_VERSION, MapStore, from_blob, migrate, schema_version, to_blob
+from services.mapstore.blobs import from_blob, to_blob
+from services.mapstore.store import MIGRATIONS, SCHEMA_VERSION, MapStore, migrate, schema_version
 
 REPO = Path(__file__).resolve().parents[1]
 INTR = np.array([100.0, 101.0, 63.5, 47.5])
@@ -109,7 +110,6 @@ def test_old_schema_is_migrated_keeping_data(tmp_path):
     conn = sqlite3.connect(path, isolation_level=None)
     migrate(conn, target=1)
     content, _, _ = keyframe(7)
-    from services.mapstore.store import to_blob
 
     conn.execute("INSERT INTO keyframes VALUES (?, ?, ?, ?, ?, ?, ?)",
                  (7, content.t_ns, 1, 96, 128, to_blob(content.codes), to_blob(content.colours)))

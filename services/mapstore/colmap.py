@@ -122,18 +122,16 @@ class ColmapWriter:
             log.warning("image of another size left out of the COLMAP model",
                         extra={"image": im.name, "size": im.size, "camera_size": self._images[0][0].size})
             return
-        if depth is not None and len(self.xyz):
-            seen = self._finder.submit(self._first_visible, np.linalg.inv(im.world_from_cam), depth)
-        else:
-            seen = Future()
-            seen.set_result(np.zeros(0, np.int64))
-        self._images.append((im, seen))
+        self._images.append((im, self._finder.submit(self._first_visible, im.world_from_cam, depth)))
 
-    def _first_visible(self, cam_from_world: np.ndarray, depth: KeyframeDepth) -> np.ndarray:
-        """The (at most ``max_points_per_image``) visible points that come first in the fixed order, ascending. The
-        points are tested in that order, a growing chunk at a time, until the cap is reached: a keyframe that sees a
-        share f of the map tests ~cap / f points, not the map (bench/export.py, 1203 keyframes x 312k points:
-        13.8 s -> 2.3 s)."""
+    def _first_visible(self, world_from_cam: np.ndarray, depth: KeyframeDepth | None) -> np.ndarray:
+        """The (at most ``max_points_per_image``) visible points that come first in the fixed order, ascending (none
+        without a ``depth``). The points are tested in that order, a growing chunk at a time, until the cap is
+        reached: a keyframe that sees a share f of the map tests ~cap / f points, not the map (bench/export.py, 1203
+        keyframes x 312k points: 13.8 s -> 2.3 s)."""
+        if depth is None:
+            return np.zeros(0, np.int64)
+        cam_from_world = np.linalg.inv(world_from_cam)
         cap = self.params.max_points_per_image
         start, chunk, found, count = 0, 8 * cap, [np.zeros(0, np.int64)], 0
         while start < len(self._order) and count < cap:

@@ -1,4 +1,4 @@
-"""Durable map store: SQLite in WAL mode, one row per keyframe, arrays as .npy blobs.
+"""Durable map store: SQLite in WAL mode, one row per keyframe, arrays as .npy blobs (`blobs.py`).
 
 Why SQLite/WAL: one file, atomic multi-row transactions (a graph update of many poses and depths
 commits all or nothing), readers never block the writer, and a killed process loses nothing that was
@@ -13,11 +13,8 @@ the same frozen sums. `iter_keyframes` reads the keyframes page by page in id or
 
 from __future__ import annotations
 
-import functools
-import io
 import logging
 import sqlite3
-import struct
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,6 +22,7 @@ from typing import Iterator, Literal, NamedTuple
 
 import numpy as np
 
+from services.mapstore.blobs import from_blob, to_blob
 from services.mapstore.core.keyframe import KeyframeContent, KeyframeDepth
 from services.mapstore.core.scoring import PcaBasis
 
@@ -76,47 +74,6 @@ MIGRATIONS: list[str] = [
     """,
 ]
 SCHEMA_VERSION = len(MIGRATIONS)
-
-
-def to_blob(array: np.ndarray | None) -> bytes | None:
-    """Serialise an array (dtype and shape included) as .npy bytes; None stays None."""
-    if array is None:
-        return None
-    buf = io.BytesIO()
-    np.save(buf, np.ascontiguousarray(array), allow_pickle=False)
-    return buf.getvalue()
-
-
-def from_blob(blob: bytes | None) -> np.ndarray | None:
-    """Inverse of `to_blob` (a writable array). The header's layout is parsed once per distinct header: np.load
-    parses it with ``ast`` every time, most of reading a keyframe's small maps (the end of stream's export reads
-    every stored keyframe's; a restart loads them all)."""
-    if blob is None:
-        return None
-    if blob[:6] != b"\x93NUMPY":
-        raise ValueError(f"not an .npy blob (it starts {blob[:8]!r})")
-    size = _NPY_HEADER_SIZE.get(blob[6:7])
-    if size is None:  # a newer .npy version than numpy's 1.0 and 2.0 (utf-8 headers): numpy reads it
-        return np.load(io.BytesIO(blob), allow_pickle=False)
-    offset = 8 + size.size + size.unpack_from(blob, 8)[0]
-    dtype, shape, fortran = _npy_layout(blob[:offset])
-    array = np.frombuffer(blob, dtype, count=int(np.prod(shape)), offset=offset).copy()
-    return array.reshape(shape[::-1]).T if fortran else array.reshape(shape)
-
-
-_NPY_HEADER_SIZE = {b"\x01": struct.Struct("<H"), b"\x02": struct.Struct("<I")}  # header length, by major version
-
-
-@functools.lru_cache(maxsize=256)
-def _npy_layout(header: bytes) -> tuple[np.dtype, tuple[int, ...], bool]:
-    """(dtype, shape, fortran order) of an .npy header (magic and version included)."""
-    f = io.BytesIO(header)
-    major, _ = np.lib.format.read_magic(f)
-    read = np.lib.format.read_array_header_1_0 if major == 1 else np.lib.format.read_array_header_2_0
-    shape, fortran, dtype = read(f)
-    if dtype.hasobject:
-        raise ValueError("object arrays are not stored")
-    return dtype, shape, fortran
 
 
 def schema_version(conn: sqlite3.Connection) -> int:

@@ -6,7 +6,7 @@ coordinates come from its latest `world_from_cam`, so a pose update moves exactl
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import NamedTuple
 
 import numpy as np
@@ -84,10 +84,10 @@ class KeyframeDepth:
 
     def same_as(self, other: "KeyframeDepth | None") -> bool:
         """Every field equal to ``other``'s, value for value (a map resent unchanged)."""
-        return other is not None and all(
-            (a is None and b is None) or (a is not None and b is not None and np.array_equal(a, b))
-            for a, b in ((self.disparity, other.disparity), (self.intrinsics, other.intrinsics),
-                         (self.static_weight, other.static_weight), (self.confidence, other.confidence)))
+        def equal(a: np.ndarray | None, b: np.ndarray | None) -> bool:
+            return a is b if a is None or b is None else np.array_equal(a, b)
+
+        return other is not None and all(equal(getattr(self, f.name), getattr(other, f.name)) for f in fields(self))
 
 
 class AnchoredPoints(NamedTuple):
