@@ -190,7 +190,8 @@ def main() -> None:
     rel = np.linalg.inv(poses[0]) @ poses
     angles = np.degrees(np.arccos(np.clip((np.trace(rel[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1)))
     lost = run.frontend.frames.lost_views()
-    print(f"view lost: {', '.join(f'{a}-{b}' for a, b in lost) if lost else 'none'}")
+    print(f"view lost: {', '.join(f'{a}-{b}' for a, b in lost) if lost else 'none'}; "
+          f"frames whose solve strayed off the poses around them: {run.frontend.frames.strayed()}")
     print(f"drift from the first pose: max rotation {angles.max():.3f} deg, max translation "
           f"{np.linalg.norm(rel[:, :3, 3], axis=1).max():.4f} (map units)")
     ate = evaluate(args.source, est)

@@ -117,6 +117,10 @@ def _print_live(report) -> None:
         frames = sum(b - a + 1 for a, b in report.views_lost)
         print(f"  view lost:         frames {runs} ({frames} frame{'s' * (frames != 1)} whose view held no evidence, "
               "posed by time between their neighbours)")
+    if report.frames_strayed:
+        print(f"  strayed:           {report.frames_strayed} frame{'s' * (report.frames_strayed != 1)} whose solve "
+              "lay farther off the poses around it than the camera can go (something moving filled the view), posed "
+              "by time between their neighbours")
     if report.end_of_stream_s is not None:
         work = ", ".join(f"{stage} {use['work_s']:.1f} s" for stage, use in report.end_of_stream_stages.items()
                          if use.get("work_s"))

@@ -57,6 +57,7 @@ def test_the_first_pose_of_each_frame_is_kept_and_frames_ingest_dropped_count_as
         lost = np.array([[1, 1]], np.int64) if stage == "ba" else None  # frame 1's view held no evidence
         _deliver(observer, Eos("cam0", 4, 0, stage=stage, count=3, dropped=dropped,
                                codes_skipped=4 if stage == "features" else 0, views_lost=lost,
+                               frames_strayed=3 if stage == "ba" else 0,
                                work_s=2.5 if stage == "ba" else 0.0))
 
     report = RunReport("synth:", "cam0", ["ingest", "features", "ba"], [], duration_s=1.0)
@@ -70,6 +71,7 @@ def test_the_first_pose_of_each_frame_is_kept_and_frames_ingest_dropped_count_as
     _print_summary(report)
     printed = capsys.readouterr().out
     assert "view lost:         frames 1 (1 frame whose view held no evidence" in printed
+    assert report.frames_strayed == 3 and "strayed:           3 frames whose solve" in printed
     assert report.end_of_stream_s is not None and report.end_of_stream_s >= 0
     assert set(report.end_of_stream_stages) == {"features", "ba"}  # ingest's EOS is where the clock starts
     assert report.end_of_stream_stages["ba"]["work_s"] == 2.5

@@ -230,13 +230,13 @@ def handle_eos(state: BaState, msg: Eos, cfg: BaSettings, publish: Callable[[Out
     except (ValueError, RuntimeError):  # the stream must still end downstream
         log.exception("global BA failed; last online state stands", extra={"stream": msg.stream, "seq": msg.seq})
         state.rejected["global_ba"] += 1
-    lost = state.frontend.frames.lost_views()
+    lost, strayed = state.frontend.frames.lost_views(), state.frontend.frames.strayed()
     eos = Eos(msg.stream, max(state.last_seq, msg.seq), time.time_ns(), stage="ba", count=state.keyframes,
               reason=msg.reason, dropped=state.dropped, views_lost=np.array(lost, np.int64).reshape(-1, 2),
-              work_s=round(time.monotonic() - began, 3))
+              frames_strayed=strayed, work_s=round(time.monotonic() - began, 3))
     log.info("stream done", extra={"stream": msg.stream, "keyframes": state.keyframes, "merged": state.merged,
                                    "dropped": state.dropped, "views_lost": len(lost),
-                                   "keyframes_relocalised": state.frontend.relocalised})
+                                   "frames_strayed": strayed, "keyframes_relocalised": state.frontend.relocalised})
     state.ended_upto = max(state.last_seq, msg.seq)
     ended = [(keys.topic(msg.stream, keys.EOS), eos)]
     state.final_outputs = settled + solved + ended  # for a mapstore that restarts

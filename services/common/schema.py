@@ -196,6 +196,9 @@ class Eos(Message):
     # ba: (first, last) frame seqs of each run of frames whose view held no evidence (covered, blank, a cut),
     # posed by time between their neighbours
     views_lost: Optional[np.ndarray] = field(default=None, metadata=arr("i8", (None, 2)))
+    # ba: frames whose solved pose lay farther off the path of the poses around them than the camera can have gone
+    # (something moving filled the view), posed by time between their neighbours instead
+    frames_strayed: int = 0
     # seconds the stage spent on work the end of stream started (ba: the final BA and frames; the mapstore: the
     # export), apart from the backlog it finished first
     work_s: float = 0.0

@@ -134,6 +134,8 @@ def fill_report(report: "RunReport", observer: Observer, monitor: ResourceMonito
     report.image_size = None if observer.image_size is None else list(observer.image_size)
     if "ba" in observer.eos and observer.eos["ba"].views_lost is not None:
         report.views_lost = [[int(a), int(b)] for a, b in observer.eos["ba"].views_lost]
+    if "ba" in observer.eos:
+        report.frames_strayed = observer.eos["ba"].frames_strayed
     if "ingest" in observer.eos_at and observer.last_stage in observer.eos_at:
         report.end_of_stream_s = round(observer.eos_at[observer.last_stage] - observer.eos_at["ingest"], 3)
         report.end_of_stream_stages = {

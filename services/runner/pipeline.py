@@ -92,6 +92,7 @@ class RunReport:
     frames_lost: int | None = None  # frames ingest sent that never reached features (Zenoh drops on congestion)
     views_lost: list[list[int]] = field(default_factory=list)  # ba: [first, last] frame seqs of each run of frames
     # whose view held no evidence (covered, blank, a cut), posed by time between their neighbours
+    frames_strayed: int = 0  # ba: frames whose solve strayed off the path of the poses around them (posed by time)
     end_of_stream_s: float | None = None  # ingest's EOS → the last stage's EOS, as the runner saw them
     # per stage: its EOS after ingest's ("after_ingest_s") and the end-of-stream work it reported ("work_s")
     end_of_stream_stages: dict[str, dict[str, float]] = field(default_factory=dict)

@@ -23,7 +23,7 @@ import torch
 from services.ba.core import flow as core_flow
 from services.ba.core import se3
 from services.ba.frontend import motion
-from services.ba.frontend.graph import KeyframeGraph, Targets
+from services.ba.frontend.graph import STILL_STEP, KeyframeGraph, Targets
 from services.ba.frontend.params import MotionParams
 
 logger = logging.getLogger(__name__)
@@ -46,6 +46,8 @@ class FrameRecord:
     resolved: bool = False  # solved again with tracking's flow against that keyframe as mapping refined it
     blind: bool = False  # its flow to the keyframes held no evidence (a covered lens, a blank view, a cut): posed
     # by time between its neighbours, and reported as a lost view
+    strayed: bool = False  # its solved pose lay farther off the poses around it than the camera can have moved
+    # (FramePoses._strayed): posed by time between its neighbours instead
 
 
 def _around(seqs: list[int], seq: int) -> tuple[int | None, int | None]:
@@ -79,6 +81,7 @@ class FramePoses:
         self.params = params
         self.frames: dict[int, FrameRecord] = {}
         self._lost_before: list[tuple[int, int]] = []  # lost views among the frames dropped (lost_views)
+        self._strayed_before = 0  # strayed frames among those dropped (strayed)
 
     def add(self, record: FrameRecord) -> None:
         self.frames[record.seq] = record
@@ -139,9 +142,34 @@ class FramePoses:
         frame.blind = not res.ok
         if frame.blind:
             logger.info("frame posed by time: its flow to the keyframes holds no evidence", extra={"seq": seq})
+        pose = torch.from_numpy(res.pose).to(init)
+        frame.strayed = not frame.blind and len(kfs) == 2 and self._strayed(graph, a, b, frame, pose)
+        if frame.strayed:
+            logger.info("frame posed by time: its solved pose strayed off the path of the poses around it",
+                        extra={"seq": seq})
+        if frame.blind or frame.strayed:
             between = self._between_neighbours(graph, frame)
             return self._anchor(graph, frame, kfs[0], init if between is None else between)
-        return self._anchor(graph, frame, kfs[0], torch.from_numpy(res.pose).to(init))
+        return self._anchor(graph, frame, kfs[0], pose)
+
+    def _strayed(self, graph: KeyframeGraph, a: int, b: int, frame: FrameRecord, pose: torch.Tensor) -> bool:
+        """Whether ``pose``, solved for ``frame`` between keyframes ``a`` and ``b``, lies farther from where the
+        poses around it put it (:meth:`_neighbours`, interpolated by time) than the camera can have gone:
+        ``max_speed_growth`` x their speed (or the keyframes', where that is higher) over the time to the nearer of
+        them, as tracking bounds its poses and the window BA its keyframe steps. Weak flow that something moving
+        dominates (the 10,000-frame orbit's person filling the view) solves for that thing's motion: frames 1.5-2.2 m
+        off a path whose keyframes held within 2 cm. A hand's curved path lies off the keyframes' chord by 8 % of
+        the scene's depth (the desk, 20 frames between keyframes) but not off its neighbours'. An offset under a
+        hundredth of the scene's depth is never refused (it moves no pixel by more than about a grid px)."""
+        (t0, p0), (t1, p1) = self._neighbours(graph, frame)
+        expected = interpolate(p0, p1, (frame.stamp - t0) / max(t1 - t0, 1))
+        keyframe_speed = float((graph.poses[b][:3, 3] - graph.poses[a][:3, 3]).norm()) / max(
+            graph.stamps[b] - graph.stamps[a], 1)
+        speed = max(keyframe_speed, float((p1[:3, 3] - p0[:3, 3]).norm()) / max(t1 - t0, 1))
+        nearer = max(min(frame.stamp - t0, t1 - frame.stamp), 0)
+        depth = 1.0 / float(graph.disparity[a].median().clamp_min(1e-12))
+        allowed = max(self.params.max_speed_growth * speed * nearer, STILL_STEP * depth)
+        return float((pose[:3, 3] - expected[:3, 3]).norm()) > allowed
 
     def resolve(self, graph: KeyframeGraph, seq: int) -> torch.Tensor | None:
         """Solve tracked frame ``seq`` again with tracking's flow against its reference keyframe as the graph holds
@@ -172,22 +200,29 @@ class FramePoses:
         """Seqs whose pose flow gave, ascending: the keyframes held and the frames tracked or aligned to them."""
         held = set(graph.seqs)
         return sorted(held | {s for s, f in self.frames.items()
-                              if not (f.interpolate_only or f.blind) and f.anchor in held})
+                              if not (f.interpolate_only or f.blind or f.strayed) and f.anchor in held})
+
+    def _neighbours(self, graph: KeyframeGraph, frame: FrameRecord,
+                    flowed: list[int] | None = None) -> tuple[tuple[int, torch.Tensor], ...] | None:
+        """(stamp, world_from_cam) of the nearest poses flow gave on either side of ``frame`` (``flowed``, from
+        :meth:`_flowed`): keyframes, and frames tracked or aligned. None when one side has none."""
+        before, after = _around(self._flowed(graph) if flowed is None else flowed, frame.seq)
+        if before is None or after is None:
+            return None
+        return tuple((graph.stamps[graph.index(s)], graph.poses[graph.index(s)]) if s in graph.seqs
+                     else (self.frames[s].stamp, self.pose(graph, s)) for s in (before, after))
 
     def _between_neighbours(self, graph: KeyframeGraph, frame: FrameRecord,
                             flowed: list[int] | None = None) -> torch.Tensor | None:
         """A frame no flow posed (tracking had no time for it), interpolated by time between the nearest poses on
-        either side that flow did give (``flowed``, from :meth:`_flowed`): keyframes, and frames tracked or
-        aligned. On a live stream tracking skips frames, often every other one, so those are a frame period apart
-        where the keyframes are ~25 (the synthetic orbit at 30 Hz: 50-80 mm off between keyframes). None when
-        one side has no such pose."""
-        before, after = _around(self._flowed(graph) if flowed is None else flowed, frame.seq)
-        if before is None or after is None:
+        either side that flow did give (:meth:`_neighbours`). On a live stream tracking skips frames, often every
+        other one, so those are a frame period apart where the keyframes are ~25 (the synthetic orbit at 30 Hz:
+        50-80 mm off between keyframes). None when one side has no such pose."""
+        ends = self._neighbours(graph, frame, flowed)
+        if ends is None:
             return None
-        ends = [(graph.stamps[graph.index(s)], graph.poses[graph.index(s)]) if s in graph.seqs
-                else (self.frames[s].stamp, self.pose(graph, s)) for s in (before, after)]
-        span = max(ends[1][0] - ends[0][0], 1)
-        return interpolate(ends[0][1], ends[1][1], (frame.stamp - ends[0][0]) / span)
+        (t0, p0), (t1, p1) = ends
+        return interpolate(p0, p1, (frame.stamp - t0) / max(t1 - t0, 1))
 
     def interpolate_again(self, graph: KeyframeGraph) -> list[int]:
         """Every frame posed by time, interpolated again between its neighbours as they are now (after they were
@@ -249,15 +284,20 @@ class FramePoses:
         self.interpolate_again(graph)
 
     def interpolated(self) -> list[int]:
-        """Frames posed by time alone (no flow of tracking's or mapping's, or none that held evidence), oldest
-        first."""
-        return sorted(s for s, f in self.frames.items() if (f.interpolate_only or f.blind) and f.anchor is not None)
+        """Frames posed by time alone (no flow of tracking's or mapping's, none that held evidence, or a solve that
+        strayed), oldest first."""
+        return sorted(s for s, f in self.frames.items()
+                      if (f.interpolate_only or f.blind or f.strayed) and f.anchor is not None)
 
     def lost_views(self) -> list[tuple[int, int]]:
         """(first, last) seqs of each run of frames whose view held no evidence, ascending: those dropped from
         memory already (kept as ranges, so a camera covered for hours costs a few numbers) and those held."""
         held = sorted(s for s, f in self.frames.items() if f.blind)
         return merge_ranges(self._lost_before + [(s, s) for s in held])
+
+    def strayed(self) -> int:
+        """How many frames of the stream are posed by time because their solve strayed (:meth:`_strayed`)."""
+        return self._strayed_before + sum(f.strayed for f in self.frames.values())
 
     @staticmethod
     def _anchor(graph: KeyframeGraph, frame: FrameRecord, anchor: int, pose: torch.Tensor) -> torch.Tensor:
@@ -301,6 +341,7 @@ class FramePoses:
         published for them are final). Returns how many were dropped."""
         old = [s for s in self.frames if s < kf_seq]
         self._lost_before = merge_ranges(self._lost_before + [(s, s) for s in old if self.frames[s].blind])
+        self._strayed_before += sum(self.frames[s].strayed for s in old)
         for s in old:
             del self.frames[s]
         return len(old)
