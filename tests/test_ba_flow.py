@@ -126,7 +126,17 @@ def test_flow_parameters_for_a_bare_pair_take_the_dense_patch_stride():
     params = BaSettings(flow_low_texture_patch_stride=1).flow_params()
     assert params.for_texture(params.low_texture_below) is params  # enough to see: the preset's patches
     assert params.for_texture(params.low_texture_below - 0.1).patch_stride == params.low_texture_patch_stride == 1
-    assert FlowParams().for_texture(0.0) == FlowParams()  # off by default: a bare person in view is followed
+    assert FlowParams().for_texture(0.0).patch_stride == 1  # on by default (for keyframe edges: frames.py)
+    assert FlowParams(low_texture_patch_stride=None).for_texture(0.0) == FlowParams(low_texture_patch_stride=None)
+
+
+def test_the_dense_patch_rule_is_turned_off_from_the_environment(monkeypatch):
+    from services.ba.settings import BaSettings
+
+    monkeypatch.setenv("KMVIPE_BA_FLOW_LOW_TEXTURE_PATCH_STRIDE", "none")
+    assert BaSettings().flow_params().low_texture_patch_stride is None
+    monkeypatch.setenv("KMVIPE_BA_FLOW_LOW_TEXTURE_PATCH_STRIDE", "2")
+    assert BaSettings().flow_params().low_texture_patch_stride == 2
 
 
 @pytest.mark.parametrize("name, dense", [("rot1", False), ("low_texture", True)])
@@ -156,7 +166,7 @@ def test_keyframe_edges_of_bare_walls_are_flowed_with_dense_patches(name, dense)
 
 
 def test_with_the_dense_patch_rule_off_no_keyframe_texture_is_measured():
-    """Off by default: the graph's flows take the preset's patches and never pay for measuring the images."""
+    """With the rule off the graph's flows take the preset's patches and never pay for measuring the images."""
     import torch
 
     from services.ba.frontend.graph import KeyframeGraph
@@ -164,11 +174,45 @@ def test_with_the_dense_patch_rule_off_no_keyframe_texture_is_measured():
 
     world = profile_world(profile("low_texture", n=5), 256, 192)
     images = [cv2.cvtColor(world.render(seq).rgb, cv2.COLOR_RGB2GRAY) for seq in (0, 4)]
-    graph = KeyframeGraph(torch.tensor([40.0, 40.0, 15.5, 11.5], dtype=torch.float64), (24, 32), FlowParams(),
+    off = FlowParams(low_texture_patch_stride=None)
+    graph = KeyframeGraph(torch.tensor([40.0, 40.0, 15.5, 11.5], dtype=torch.float64), (24, 32), off,
                           torch.device("cpu"))
     for seq, grey in zip((0, 4), images):
         graph.append(seq, seq, grey, None, None, torch.eye(4, dtype=torch.float64),
                      torch.ones(24, 32, dtype=torch.float64))
     got = graph.targets(0, 1).target.numpy()
-    np.testing.assert_array_equal(got, pair_targets(*images, FlowParams())[0].target)
+    np.testing.assert_array_equal(got, pair_targets(*images, off)[0].target)
     assert graph._texture == {}
+
+
+def test_a_frames_flow_on_a_bare_wall_keeps_the_presets_patches():
+    """Dense patches are for keyframe edges, which BA weighs against many others. A frame's pose is solved from its
+    own flow alone, and over a bare person filling the view dense patches follow the person (the 10,000-frame
+    orbit's frames 4150-4449: 0.048 m with them, 0.022 m without), so its flow keeps the preset's patches."""
+    from dataclasses import replace
+
+    import torch
+
+    from services.ba.core.flow import flow_targets
+    from services.ba.frontend.frames import FramePoses, FrameRecord
+    from services.ba.frontend.graph import KeyframeGraph
+    from services.ba.frontend.params import MotionParams
+    from services.common.image_texture import texture
+    from services.synth.profiles import profile, profile_world
+
+    world = profile_world(profile("low_texture", n=5), 256, 192)
+    keyframe, frame = (cv2.cvtColor(world.render(seq).rgb, cv2.COLOR_RGB2GRAY) for seq in (0, 4))
+    params = FlowParams()  # the rule on, as by default, and the wall bare enough for it
+    assert params.low_texture_patch_stride == 1 and texture(keyframe) < params.low_texture_below
+    graph = KeyframeGraph(torch.tensor([40.0, 40.0, 15.5, 11.5], dtype=torch.float64), (24, 32), params,
+                          torch.device("cpu"))
+    graph.append(0, 0, keyframe, None, None, torch.eye(4, dtype=torch.float64), torch.ones(24, 32, dtype=torch.float64))
+    half = (128, 96)
+    small = [cv2.resize(image, half, interpolation=cv2.INTER_AREA) for image in (keyframe, frame)]
+    frames = FramePoses(MotionParams())
+    record = FrameRecord(4, 4, small[1])
+    frames.add(record)
+    got = frames._targets(graph, 0, record).target.numpy()
+    at_half = replace(params, grid=params.grid // 2, fb_sigma=params.fb_sigma / 2)
+    np.testing.assert_array_equal(got, flow_targets(*small, replace(at_half, low_texture_patch_stride=None)).target)
+    assert not np.array_equal(got, flow_targets(*small, replace(at_half, patch_stride=1)).target)

@@ -20,7 +20,9 @@ from services.common.keys import ALL_STREAMS
 class BASettings(KmVipeSettings):
     """Dense BA service settings."""
 
-    model_config = SettingsConfigDict(env_prefix="KMVIPE_BA_", env_file=".env", extra="ignore")
+    # "none" in the environment is None: the patch strides' way to say "no exception" / "the preset's own"
+    model_config = SettingsConfigDict(env_prefix="KMVIPE_BA_", env_file=".env", extra="ignore",
+                                      env_parse_none_str="none")
 
     stream: str = ALL_STREAMS
     """The stream served (``kmvipe/<stream>/...``); ``*``: every stream a source announces, each with its own state
@@ -78,9 +80,10 @@ class BASettings(KmVipeSettings):
     """OpenCV DIS patch stride of the flow targets and of tracking's flow (None: the preset's own, 3 for medium). 4
     saves a tenth of ba's time on driving footage but loses bare walls (``FlowParams.patch_stride``)."""
     flow_low_texture_patch_stride: int | None = Field(FlowParams.low_texture_patch_stride, ge=1)
-    """DIS patch stride for keyframe pairs that show less than texture 7 (None: the same as every pair). 1 holds
-    bare walls (TartanAir hospital 1.5 → 1.0 % of path) but follows a bare object that fills the view, such as a
-    person right in front of the camera (``FlowParams.low_texture_patch_stride``)."""
+    """DIS patch stride of the edge flows of keyframe pairs that show less than texture 7 (None: the same as every
+    pair). 1 holds bare walls (TartanAir hospital 1.34 → 0.89 % of path); frames' flows keep the preset's, since a
+    bare object that fills the view (a person right in front of the camera) is followed by dense patches
+    (``FlowParams.low_texture_patch_stride``). ``none`` turns the rule off."""
     fb_sigma: float = 1.0
     """Forward-backward error (working px) where flow confidence is exp(-1/2)."""
 

@@ -101,12 +101,15 @@ class FlowParams:
     fb_sigma: float = 1.0  # forward-backward error (working px) at which confidence falls to exp(-1/2)
     low_texture_below: float = 7.0  # a pair whose working images show less than this (services.common.image_texture:
     # bare walls; KITTI and the desk show 7.5 and more) ...
-    low_texture_patch_stride: int | None = None  # ... gets DIS patches this dense (None: no exception). DIS's
-    # patches are what holds a flow where a patch barely constrains it: TartanAir hospital's panelled walls (texture
-    # 2.5-6), ATE 0.221 m at stride 3, 0.188 at 2, 0.148 at 1, for 4.5x the flow time there (bench/frontend.py;
-    # docs/BENCHMARKS.md). Off by default: a person passing right in front of the camera is as bare (2.3-4.3), and
-    # dense patches give DIS a confident flow of the person's motion; the synthetic 10,000-frame orbit's frames
-    # 2000-2900 lost the map there (ATE 1.2 m with stride 1, 0.12 m without; docs/BENCHMARKS.md, eighteenth session)
+    low_texture_patch_stride: int | None = 1  # ... gets DIS patches this dense for its keyframe edges (None: no
+    # exception). DIS's patches are what holds a flow where a patch barely constrains it: TartanAir hospital's
+    # panelled walls (texture 2.5-6), ATE 0.221 m at stride 3, 0.188 at 2, 0.148 at 1, for 4.5x the flow time there
+    # (bench/frontend.py; docs/BENCHMARKS.md). A person passing right in front of the camera is as bare (2.3-4.3)
+    # and dense patches give DIS a confident flow of the person's motion: the rule lost the 10,000-frame orbit's map
+    # there in the eighteenth session (off since). Keyframes something passing fills now turn back into frames, and
+    # a frame's flow keeps the preset's patches (its solve has nothing else to outvote the person): the orbit's
+    # frames 2000-2899 0.026 m with the rule, 0.027 m without; 4150-4449 0.022 / 0.024 m (0.048 m with dense
+    # frames' flows too); TartanAir 0.89 % of path (1.34 % without; docs/BENCHMARKS.md, twenty-sixth session)
 
     def for_texture(self, texture: float) -> "FlowParams":
         """These parameters for a pair of images showing ``texture`` (the lower of the two)."""

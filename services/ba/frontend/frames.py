@@ -104,9 +104,10 @@ class FramePoses:
             size = (work.shape[1] // scale, work.shape[0] // scale)
             # at 1/scale, a grid cell is grid/scale pixels and the grid coordinates come out the same
             # ((x + 0.5)/grid - 0.5 with x the landing point at that resolution); fb_sigma is in its pixels
-            # the keyframe's texture decides the patch stride (FlowParams.low_texture_below): the frame sees about
-            # the same scene, and its own image comes at another size, where the measure reads differently
-            params = replace(graph.for_texture(graph.flow_params, k), grid=graph.flow_params.grid // scale,
+            # the preset's patches, not the dense ones of bare keyframe pairs (FlowParams.low_texture_patch_stride):
+            # a person filling the view is as bare, dense patches follow it, and one frame's solve has nothing to
+            # outvote it (the 10,000-frame orbit's frames 4150-4449: 0.048 m with them, 0.022 m without)
+            params = replace(graph.flow_params, low_texture_patch_stride=None, grid=graph.flow_params.grid // scale,
                              fb_sigma=graph.flow_params.fb_sigma / scale)
             keyframe = work if scale == 1 else cv2.resize(work, size, interpolation=cv2.INTER_AREA)
             image = frame.image if frame.image.shape[:2] == size[::-1] else cv2.resize(
