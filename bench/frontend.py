@@ -22,6 +22,7 @@ import argparse
 import dataclasses
 import time
 from dataclasses import dataclass
+from itertools import islice
 from pathlib import Path
 
 import cv2
@@ -171,8 +172,10 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     spent = _instrument()
     setup_logging("bench-frontend", LogSettings(level=args.log_level))
-    frames = [f for f in open_source(args.source).frames() if isinstance(f, SourceFrame)]
-    frames = frames[args.first:][: args.max_frames]
+    stop = None if args.max_frames is None else args.first + args.max_frames
+    # read no further than needed: a synthetic source renders every frame it yields
+    read = (f for f in open_source(args.source).frames() if isinstance(f, SourceFrame))
+    frames = list(islice(read, args.first, stop))
     if args.blank:
         first, last = (int(v) for v in args.blank.split("-"))
         frames = [dataclasses.replace(f, rgb=np.zeros_like(f.rgb)) if first <= f.index <= last else f for f in frames]
