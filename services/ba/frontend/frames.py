@@ -74,6 +74,12 @@ def interpolate(pose_a: torch.Tensor, pose_b: torch.Tensor, frac: float) -> torc
     return pose_a @ se3.exp(frac * se3.log(rel))
 
 
+def _at_time(ends: tuple[tuple[int, torch.Tensor], ...], stamp: int) -> torch.Tensor:
+    """The pose at ``stamp`` between two (stamp, world_from_cam) ``ends``, interpolated by time."""
+    (t0, p0), (t1, p1) = ends
+    return interpolate(p0, p1, (stamp - t0) / max(t1 - t0, 1))
+
+
 class FramePoses:
     """Non-keyframe records and their alignment against a :class:`KeyframeGraph`."""
 
@@ -107,7 +113,7 @@ class FramePoses:
             # the preset's patches, not the dense ones of bare keyframe pairs (FlowParams.low_texture_patch_stride):
             # a person filling the view is as bare, dense patches follow it, and one frame's solve has nothing to
             # outvote it (the 10,000-frame orbit's frames 4150-4449: 0.048 m with them, 0.022 m without)
-            params = replace(graph.flow_params, low_texture_patch_stride=None, grid=graph.flow_params.grid // scale,
+            params = replace(graph.flow_params, grid=graph.flow_params.grid // scale,
                              fb_sigma=graph.flow_params.fb_sigma / scale)
             keyframe = work if scale == 1 else cv2.resize(work, size, interpolation=cv2.INTER_AREA)
             image = frame.image if frame.image.shape[:2] == size[::-1] else cv2.resize(
@@ -144,26 +150,26 @@ class FramePoses:
         if frame.blind:
             logger.info("frame posed by time: its flow to the keyframes holds no evidence", extra={"seq": seq})
         pose = torch.from_numpy(res.pose).to(init)
-        frame.strayed = not frame.blind and len(kfs) == 2 and self._strayed(graph, a, b, frame, pose)
+        # the poses around it, looked up once: what its solve is checked against, and where it goes if refused
+        ends = self._neighbours(graph, frame) if frame.blind or len(kfs) == 2 else None
+        between = init if ends is None else _at_time(ends, frame.stamp)
+        frame.strayed = not frame.blind and len(kfs) == 2 and self._strayed(graph, a, b, frame, pose, ends, between)
         if frame.strayed:
             logger.info("frame posed by time: its solved pose strayed off the path of the poses around it",
                         extra={"seq": seq})
-        if frame.blind or frame.strayed:
-            between = self._between_neighbours(graph, frame)
-            return self._anchor(graph, frame, kfs[0], init if between is None else between)
-        return self._anchor(graph, frame, kfs[0], pose)
+        return self._anchor(graph, frame, kfs[0], between if frame.blind or frame.strayed else pose)
 
-    def _strayed(self, graph: KeyframeGraph, a: int, b: int, frame: FrameRecord, pose: torch.Tensor) -> bool:
-        """Whether ``pose``, solved for ``frame`` between keyframes ``a`` and ``b``, lies farther from where the
-        poses around it put it (:meth:`_neighbours`, interpolated by time) than the camera can have gone:
-        ``max_speed_growth`` x their speed (or the keyframes', where that is higher) over the time to the nearer of
-        them, as tracking bounds its poses and the window BA its keyframe steps. Weak flow that something moving
-        dominates (the 10,000-frame orbit's person filling the view) solves for that thing's motion: frames 1.5-2.2 m
-        off a path whose keyframes held within 2 cm. A hand's curved path lies off the keyframes' chord by 8 % of
-        the scene's depth (the desk, 20 frames between keyframes) but not off its neighbours'. An offset under a
-        hundredth of the scene's depth is never refused (it moves no pixel by more than about a grid px)."""
-        (t0, p0), (t1, p1) = self._neighbours(graph, frame)
-        expected = interpolate(p0, p1, (frame.stamp - t0) / max(t1 - t0, 1))
+    def _strayed(self, graph: KeyframeGraph, a: int, b: int, frame: FrameRecord, pose: torch.Tensor,
+                 ends: tuple[tuple[int, torch.Tensor], ...], expected: torch.Tensor) -> bool:
+        """Whether ``pose``, solved for ``frame`` between keyframes ``a`` and ``b``, lies farther from
+        ``expected``, where the poses around it (``ends``, :meth:`_neighbours`) put it by time, than the camera can
+        have gone: ``max_speed_growth`` x their speed (or the keyframes', where that is higher) over the time to the
+        nearer of them, as tracking bounds its poses and the window BA its keyframe steps. Weak flow that something
+        moving dominates (the 10,000-frame orbit's person filling the view) solves for that thing's motion: frames
+        1.5-2.2 m off a path whose keyframes held within 2 cm. A hand's curved path lies off the keyframes' chord by
+        8 % of the scene's depth (the desk, 20 frames between keyframes) but not off its neighbours'. An offset under
+        a hundredth of the scene's depth is never refused (it moves no pixel by more than about a grid px)."""
+        (t0, p0), (t1, p1) = ends
         keyframe_speed = float((graph.poses[b][:3, 3] - graph.poses[a][:3, 3]).norm()) / max(
             graph.stamps[b] - graph.stamps[a], 1)
         speed = max(keyframe_speed, float((p1[:3, 3] - p0[:3, 3]).norm()) / max(t1 - t0, 1))
@@ -220,10 +226,7 @@ class FramePoses:
         other one, so those are a frame period apart where the keyframes are ~25 (the synthetic orbit at 30 Hz:
         50-80 mm off between keyframes). None when one side has no such pose."""
         ends = self._neighbours(graph, frame, flowed)
-        if ends is None:
-            return None
-        (t0, p0), (t1, p1) = ends
-        return interpolate(p0, p1, (frame.stamp - t0) / max(t1 - t0, 1))
+        return None if ends is None else _at_time(ends, frame.stamp)
 
     def interpolate_again(self, graph: KeyframeGraph) -> list[int]:
         """Every frame posed by time, interpolated again between its neighbours as they are now (after they were

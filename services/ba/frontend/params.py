@@ -19,7 +19,8 @@ class MotionParams:
     # arrive as half-size lite images, so full-resolution flow would only add cost (4x) to upsampled pixels
     max_speed_growth: float = 4.0  # a tracked pose farther from its reference keyframe than this x mapping's speed
     # (Reference.speed) x their time apart is refused for the bounded prediction, as a keyframe's step is
-    # (FrontendParams.max_step_growth): PnP on a view the synthetic person fills put frames 17,000 map units away
+    # (FrontendParams.max_step_growth): PnP on a view the synthetic person fills put frames 17,000 map units away.
+    # Mapping bounds a frame's solve the same way against the poses around it (FramePoses._strayed)
 
 
 @dataclass(frozen=True)
