@@ -62,6 +62,11 @@ class BaSettings(BASettings):
     share of its pixels land in the new keyframe; 0: always by the whole induced flow."""
     proximity_max_edges: int = GraphParams.proximity_max_edges
     """Proximity edges per new keyframe."""
+    loop_max_edges: int = GraphParams.loop_max_edges
+    """Loop edges per new keyframe: to held keyframes older than the window that it sees again (0: none); only the
+    BAs over every held keyframe use them."""
+    loop_every: int = GraphParams.loop_every
+    """A keyframe gets loop edges only when none of the keyframes this close before it got one."""
     remove_max_flow: float = GraphParams.remove_max_flow
     """A second-newest keyframe whose flow to its predecessor is below this (grid px) is removed."""
     global_radius: int = GraphParams.global_radius
@@ -203,8 +208,8 @@ class BaSettings(BASettings):
         """The frozen parameters of :class:`services.ba.frontend.frontend.Frontend`."""
         graph = GraphParams(window=self.window, temporal_radius=self.temporal_radius,
                             proximity_max_flow=self.proximity_max_flow, proximity_max_edges=self.proximity_max_edges,
-                            proximity_overlap=self.proximity_overlap,
-                            remove_max_flow=self.remove_max_flow, global_radius=self.global_radius)
+                            proximity_overlap=self.proximity_overlap, loop_max_edges=self.loop_max_edges,
+                            loop_every=self.loop_every, remove_max_flow=self.remove_max_flow, global_radius=self.global_radius)
         return FrontendParams(
             graph=graph, init=InitParams(min_keyframes=self.init_keyframes, min_flow=self.init_min_flow,
                                          max_keyframes=self.init_max_keyframes),

@@ -72,6 +72,10 @@ class GraphParams:
     # least this share of its pixels land in the new keyframe (0: always by the whole induced flow)
     proximity_max_edges: int = 3  # proximity edges added per new keyframe
     proximity_nms: int = 2  # a chosen proximity edge suppresses candidates this close in keyframe index
+    loop_max_edges: int = 1  # proximity edges from a new keyframe to held keyframes older than the window (0: none;
+    # upkeep.add_loop_edges), chosen as proximity_pairs chooses, where ...
+    loop_overlap: float = 0.5  # ... at least this share of the old keyframe's pixels land in the new one, ...
+    loop_every: int = 4  # ... and none of the keyframes this close before it got one
     remove_max_flow: float = 1.0  # the newest keyframe is redundant when its flow to the previous is below this
     global_radius: int = 3  # temporal radius of the global BA's own edge set
 

@@ -1,9 +1,10 @@
-"""Upkeep of the keyframe graph after a keyframe joins: proximity edges to older window keyframes, and keyframes
-turned back into frames (one the BA cannot constrain, one that barely moved). Functions of the graph, the frames
-and the parameters; the frontend decides when they run."""
+"""Upkeep of the keyframe graph after a keyframe joins: proximity edges to older window keyframes and loop edges
+beyond the window, and keyframes turned back into frames (one the BA cannot constrain, one that barely moved).
+Functions of the graph, the frames and the parameters; the frontend decides when they run."""
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 
 import torch
 
@@ -36,6 +37,30 @@ def add_proximity(g: KeyframeGraph, k: int, window: list[int], gp: GraphParams) 
         turned = still & (parts.rotation >= gp.proximity_max_flow) & (parts.overlap >= gp.proximity_overlap)
         dist = torch.where(turned, parts.parallax, parts.induced)
     chosen = edges.proximity_pairs(k, cands, dist.cpu(), gp)
+    g.proximity |= {(g.seqs[a], g.seqs[b]) for a, b in chosen}
+    add_loop_edges(g, k, window, gp)
+
+
+def add_loop_edges(g: KeyframeGraph, k: int, window: list[int], gp: GraphParams) -> None:
+    """Proximity edges from keyframe ``k`` to held keyframes older than ``window`` that its view overlaps
+    (``gp.loop_overlap`` of their pixels land in it) with little induced flow: a camera back where it was. The window
+    BA never sees them; the BA over every held keyframe (``Refinement.refine_globally``, the end of stream) does,
+    and pulls the drift since back (the 10,000-frame orbit's scale drifted +27 % over 23 laps without them). At
+    most every ``gp.loop_every``-th keyframe: each edge costs a flow and BA work, and two on every keyframe slowed
+    the 10,000-frame stream's mapping until tracking, short of CPU, skipped frames (docs/BENCHMARKS.md)."""
+    if gp.loop_max_edges <= 0 or not window or window[0] == 0:
+        return
+    recent = set(g.seqs[max(0, k - gp.loop_every + 1):k])
+    if any(a in recent and g.index(a) - g.index(b) >= len(window) for a, b in g.proximity):
+        return  # one of the last loop_every keyframes has its loop edges: they hold the drift as well
+    cands = list(range(window[0]))
+    state = g.stacked(cands + [k])
+    ii = torch.arange(len(cands), device=state.poses.device)
+    parts = edges.flow_parts(state.poses, state.disparity, g.intrinsics, ii, torch.full_like(ii, len(cands)))
+    dist = torch.where(parts.overlap >= gp.loop_overlap, parts.induced, torch.full_like(parts.induced, float("inf")))
+    chosen = edges.proximity_pairs(k, cands, dist.cpu(), replace(gp, proximity_max_edges=gp.loop_max_edges))
+    if chosen:
+        logger.info("loop edges", extra={"seq": g.seqs[k], "to": sorted({g.seqs[b] for a, b in chosen if a == k})})
     g.proximity |= {(g.seqs[a], g.seqs[b]) for a, b in chosen}
 
 

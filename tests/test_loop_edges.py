@@ -1,0 +1,85 @@
+"""Loop edges: a keyframe back where an older held keyframe was, beyond the BA window, gets proximity edges to it
+(upkeep.add_loop_edges), and only then; the BA over the held keyframes uses them, the window BA does not."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from services.ba.core import se3
+from services.ba.core.params import FlowParams
+from services.ba.frontend import upkeep
+from services.ba.frontend.graph import KeyframeGraph
+from services.ba.frontend.params import GraphParams
+
+H, W, LAP = 24, 32, 40
+
+
+def _pose(theta: float, pitch: float = 0.0, radius: float = 2.0) -> torch.Tensor:
+    """A camera on a circle of ``radius`` at angle ``theta``, looking outward (optical axis z along the radius),
+    tilted up by ``pitch``."""
+    pose = torch.eye(4, dtype=torch.float64)
+    yaw = se3.so3_exp(torch.tensor([0.0, theta, 0.0], dtype=torch.float64))
+    tilt = se3.so3_exp(torch.tensor([pitch, 0.0, 0.0], dtype=torch.float64))
+    pose[:3, :3] = yaw @ tilt
+    pose[:3, 3] = torch.tensor([radius * math.sin(theta), 0.0, radius * math.cos(theta)])
+    return pose
+
+
+def _lap_graph(extra: torch.Tensor) -> KeyframeGraph:
+    """A lap of ``LAP`` keyframes around a circle (each seeing a wall 3 m ahead), then one more at ``extra``."""
+    graph = KeyframeGraph(torch.tensor([28.0, 28.0, 15.5, 11.5], dtype=torch.float64), (H, W), FlowParams(),
+                          torch.device("cpu"))
+    wall = torch.full((H, W), 1.0 / 3.0, dtype=torch.float64)
+    grey = np.zeros((H * 8, W * 8), np.uint8)
+    for k in range(LAP):
+        graph.append(k, k, grey, None, None, _pose(2 * math.pi * k / LAP), wall.clone())
+    graph.append(LAP, LAP, grey, None, None, extra, wall.clone())
+    return graph
+
+
+def _linked(graph: KeyframeGraph, params: GraphParams) -> set[int]:
+    window = list(range(LAP - 9, LAP + 1))
+    upkeep.add_loop_edges(graph, LAP, window, params)
+    assert {(a, b) for a, b in graph.proximity if b == LAP} == {(b, a) for a, b in graph.proximity if a == LAP}
+    return {a for a, b in graph.proximity if b == LAP}
+
+
+def test_a_keyframe_back_at_the_start_of_its_lap_is_linked_to_the_keyframes_there():
+    # back at the first keyframe's place, slightly off (the drift a loop edge is for)
+    linked = _linked(_lap_graph(_pose(0.02, radius=2.05)), GraphParams(loop_max_edges=2))
+    assert 0 in linked and linked <= {0, 1, 2}
+
+
+def test_no_loop_edges_where_the_view_shares_nothing_or_they_are_off():
+    assert _linked(_lap_graph(_pose(0.0, pitch=math.radians(80))), GraphParams(loop_max_edges=2)) == set()
+    assert _linked(_lap_graph(_pose(0.0)), GraphParams(loop_max_edges=0)) == set()
+
+
+def test_loop_edges_go_only_to_keyframes_older_than_the_window():
+    # halfway round the lap: the nearest keyframes (20) are older than the window, the window's own are not linked
+    linked = _linked(_lap_graph(_pose(math.pi)), GraphParams(loop_max_edges=3))
+    assert 20 in linked and max(linked) < LAP - 9
+
+
+def test_a_keyframe_right_after_one_with_a_loop_edge_gets_none():
+    wall = torch.full((H, W), 1.0 / 3.0, dtype=torch.float64)
+    grey = np.zeros((H * 8, W * 8), np.uint8)
+    for every, expected in ((4, set()), (1, {1})):
+        graph = _lap_graph(_pose(0.0))
+        _linked(graph, GraphParams(loop_max_edges=1, loop_every=every))
+        graph.append(LAP + 1, LAP + 1, grey, None, None, _pose(2 * math.pi / LAP), wall.clone())
+        window = list(range(LAP - 8, LAP + 2))
+        upkeep.add_loop_edges(graph, LAP + 1, window, GraphParams(loop_max_edges=1, loop_every=every))
+        assert {a for a, b in graph.proximity if b == LAP + 1} == expected, every
+
+
+def test_loop_edges_are_set_from_the_environment(monkeypatch):
+    from services.ba.settings import BaSettings
+
+    assert BaSettings().frontend_params().graph.loop_max_edges == GraphParams().loop_max_edges > 0
+    monkeypatch.setenv("KMVIPE_BA_LOOP_MAX_EDGES", "0")
+    monkeypatch.setenv("KMVIPE_BA_LOOP_EVERY", "2")
+    graph = BaSettings().frontend_params().graph
+    assert (graph.loop_max_edges, graph.loop_every) == (0, 2)
