@@ -209,7 +209,8 @@ class BaSettings(BASettings):
         graph = GraphParams(window=self.window, temporal_radius=self.temporal_radius,
                             proximity_max_flow=self.proximity_max_flow, proximity_max_edges=self.proximity_max_edges,
                             proximity_overlap=self.proximity_overlap, loop_max_edges=self.loop_max_edges,
-                            loop_every=self.loop_every, remove_max_flow=self.remove_max_flow, global_radius=self.global_radius)
+                            loop_every=self.loop_every, remove_max_flow=self.remove_max_flow,
+                            global_radius=self.global_radius)
         return FrontendParams(
             graph=graph, init=InitParams(min_keyframes=self.init_keyframes, min_flow=self.init_min_flow,
                                          max_keyframes=self.init_max_keyframes),
