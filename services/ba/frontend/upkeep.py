@@ -50,8 +50,9 @@ def add_loop_edges(g: KeyframeGraph, k: int, window: list[int], gp: GraphParams)
     the 10,000-frame stream's mapping until tracking, short of CPU, skipped frames (docs/BENCHMARKS.md)."""
     if gp.loop_max_edges <= 0 or not window or window[0] == 0:
         return
-    recent = set(g.seqs[max(0, k - gp.loop_every + 1):k])
-    if any(a in recent and g.index(a) - g.index(b) >= len(window) for a, b in g.proximity):
+    position = {seq: i for i, seq in enumerate(g.seqs)}  # one pass, not a list search per edge end
+    first_recent = max(0, k - gp.loop_every + 1)
+    if any(first_recent <= position[a] < k and position[a] - position[b] >= len(window) for a, b in g.proximity):
         return  # one of the last loop_every keyframes has its loop edges: they hold the drift as well
     cands = list(range(window[0]))
     state = g.stacked(cands + [k])
