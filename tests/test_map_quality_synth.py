@@ -105,6 +105,17 @@ def test_moving_presence_counts_only_points_the_moving_object_explains():
     assert 0.5 <= frac <= 1.0
 
 
+def test_unambiguous_labels_leave_out_points_between_two_surfaces():
+    floor = np.stack(np.meshgrid(np.arange(10) * 0.1, np.arange(10) * 0.1, [0.0]), -1).reshape(-1, 3)
+    leg = np.array([[0.5, 0.5, z] for z in np.arange(1, 6) * 0.1])  # a chair leg standing on the floor
+    gt = mq.GtPoints(np.concatenate([floor, leg]), np.r_[np.zeros(100, np.int32), np.full(5, 5, np.int32)],
+                     np.zeros(105, bool))
+    points = np.array([[0.1, 0.1, 0.02], [0.5, 0.5, 0.4], [0.52, 0.5, 0.03], [5.0, 5.0, 5.0]])
+    labels = mq.unambiguous_labels(points, gt, 0.1)
+    np.testing.assert_array_equal(labels, [0, 5, mq.AMBIGUOUS, -1])  # floor, leg, where they meet, nothing near
+    nearest = mq.match_to_gt(points, gt, 0.1)
+    assert gt.label[nearest.index[2]] == 0  # the nearest-point rule calls the foot of the leg floor
+
 def test_inside_any_box_grows_the_boxes_by_the_margin():
     lo = np.array([[0.0, 0.0, 0.0], [5.0, 5.0, 5.0]])
     pts = np.array([[0.5, 0.5, 0.5], [1.02, 0.5, 0.5], [3.0, 3.0, 3.0], [5.5, 5.5, 6.01]])

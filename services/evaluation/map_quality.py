@@ -104,6 +104,23 @@ def match_to_gt(map_xyz: np.ndarray, gt: GtPoints, max_dist: float) -> Matching:
     return Matching(np.asarray(idx, np.int64), np.asarray(dist), np.asarray(dist) <= max_dist)
 
 
+AMBIGUOUS = -2
+"""Label of a map point whose ``max_dist`` neighbourhood holds GT points of more than one label."""
+
+
+def unambiguous_labels(map_xyz: np.ndarray, gt: GtPoints, max_dist: float) -> np.ndarray:
+    """(M,) GT label of each map point: the one label of every GT point within ``max_dist``; -1 when none lies
+    that close, ``AMBIGUOUS`` when they disagree. A voxel there fuses the features of two surfaces (a chair leg
+    and the floor round it), so it has no single true label and its nearest GT point's is a coin toss."""
+    near = cKDTree(gt.xyz).query_ball_point(np.asarray(map_xyz, np.float64), max_dist)
+    out = np.full(len(near), -1, np.int64)
+    for i, idx in enumerate(near):
+        if idx:
+            labels = gt.label[idx]
+            out[i] = labels[0] if (labels == labels[0]).all() else AMBIGUOUS
+    return out
+
+
 def label_scores(predicted: np.ndarray, truth: np.ndarray, n_labels: int) -> LabelScores:
     """Per-label precision / recall / IoU of (M,) predicted against (M,) true labels (both in [0, n_labels))."""
     if predicted.shape != truth.shape or predicted.ndim != 1:
