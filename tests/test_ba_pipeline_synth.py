@@ -3,6 +3,8 @@ keyframes with oracle codes at the working resolution 384x512, the other frames 
 ATE (Sim(3)-aligned) of every frame against the exact trajectory."""
 from __future__ import annotations
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
@@ -218,6 +220,31 @@ def test_mapping_behind_a_live_camera_defers_its_window_ba_and_keeps_every_keyfr
     print(f"deferred window BAs: ATE {rmse:.4f} m over {length:.2f} m")
     assert rmse < 0.01 * length
 
+
+def test_a_chain_of_deferred_keyframes_is_posed_against_measured_depth():
+    """Mapping far behind (six keyframes in a row leave their window BA): each deferred keyframe is aligned to the
+    cells of the one before where a point landed, and again jointly with the newest keyframe a BA refined; its
+    depth is carried from that keyframe. Aligned to the carried depth's filled-in cells (the median disparity),
+    the chain's poses as they went out were 1.26 % of the path off; now 0.46 %."""
+    world, msgs = synth_stream(n_frames=60, rendered=36, every=3)
+    fe = Frontend(dataclasses.replace(FrontendParams(), live_max_deferred=6))
+    first: dict[int, np.ndarray] = {}
+    deferred = 0
+    for msg in msgs[:-1]:
+        if isinstance(msg, Keyframe):
+            up = fe.add_keyframe(KeyframeInput(msg.seq, msg.t_ns, msg.image, msg.intrinsics, msg.codes,
+                                               realtime=True, defer_ba=True))
+            deferred += int(fe._calibrated and up.graph is None and up.poses is not None)
+            if up.poses is not None:
+                for seq, pose in zip(up.poses.frame_seqs, up.poses.poses):
+                    first.setdefault(int(seq), np.asarray(pose))
+        else:
+            fe.add_frame(FrameInput(msg.seq, msg.t_ns, msg.image))
+    seqs = sorted(first)
+    rmse, length = ate_of(world, np.array(seqs), np.stack([first[s] for s in seqs]))
+    print(f"{deferred} deferred keyframes; the poses as they went out: ATE {rmse / length:.3%} of {length:.2f} m")
+    assert deferred >= 5
+    assert rmse < 0.008 * length
 
 def test_a_blank_view_is_reported_lost_and_its_frames_lie_between_their_neighbours():
     """Ten frames between two keyframes go blank (a covered lens): DIS still returns a smooth, forward-backward

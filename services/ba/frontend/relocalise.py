@@ -17,13 +17,14 @@ logger = logging.getLogger(__name__)
 
 
 def realign_keyframe(graph: KeyframeGraph, k: int, aligned: MotionResult, motion_params: MotionParams,
-                     params: RelocaliseParams) -> MotionResult:
+                     params: RelocaliseParams, known: torch.Tensor | None = None) -> MotionResult:
     """Keyframe ``k``'s motion-only alignment to keyframe ``k - 1``, ``aligned`` (started from the motion
     prediction), against the same alignment started from the PnP pose, with the flow between the two computed
     afresh from the flow that pose induces. Runs only when ``aligned`` keeps less than ``params.below_share`` of
-    the grid. Returns the result the flow supports more (the larger robust weight); the graph's cached flows and
-    pose of ``k`` are left as that start made them."""
-    cells = graph.disparity[k - 1].numel()
+    the grid (of its cells that hold a point: ``known``, (h, w) 0/1, where ``k - 1``'s depth was carried over).
+    Returns the result the flow supports more (the larger robust weight); the graph's cached flows and pose of
+    ``k`` are left as that start made them."""
+    cells = graph.disparity[k - 1].numel() if known is None else max(float(known.sum()), 1.0)
     if aligned.ok and aligned.weight >= params.below_share * cells:
         return aligned
     found = pnp_pose(graph.images[k - 1], graph.poses[k - 1], graph.disparity[k - 1], graph.intrinsics,
@@ -36,8 +37,9 @@ def realign_keyframe(graph: KeyframeGraph, k: int, aligned: MotionResult, motion
     graph.poses[k] = torch.from_numpy(found.pose).to(guess)
     t = graph.targets(k - 1, k)
     dev = graph.device
+    confidence = t.confidence.to(dev) if known is None else t.confidence.to(dev) * known.to(dev)
     res = motion.align(found.pose, graph.poses[k - 1][None], graph.disparity[k - 1][None], t.target[None].to(dev),
-                       t.confidence[None].to(dev), graph.intrinsics, motion_params)
+                       confidence[None], graph.intrinsics, motion_params)
     better = res.ok and bool(np.isfinite(res.pose).all()) and (not aligned.ok or res.weight > aligned.weight)
     logger.info("keyframe relocalised" if better else "keyframe's relocalised start less supported; kept",
                 extra={"seq": graph.seqs[k], "inliers": found.inliers, "share_before": round(aligned.weight / cells, 3),
