@@ -246,6 +246,7 @@ def test_a_chain_of_deferred_keyframes_is_posed_against_measured_depth():
     assert deferred >= 5
     assert rmse < 0.008 * length
 
+
 def test_a_blank_view_is_reported_lost_and_its_frames_lie_between_their_neighbours():
     """Ten frames between two keyframes go blank (a covered lens): DIS still returns a smooth, forward-backward
     consistent flow there, which without the photometric check aligned them 6 cm off a 1.7 m path. They are

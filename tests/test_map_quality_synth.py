@@ -116,6 +116,7 @@ def test_unambiguous_labels_leave_out_points_between_two_surfaces():
     nearest = mq.match_to_gt(points, gt, 0.1)
     assert gt.label[nearest.index[2]] == 0  # the nearest-point rule calls the foot of the leg floor
 
+
 def test_inside_any_box_grows_the_boxes_by_the_margin():
     lo = np.array([[0.0, 0.0, 0.0], [5.0, 5.0, 5.0]])
     pts = np.array([[0.5, 0.5, 0.5], [1.02, 0.5, 0.5], [3.0, 3.0, 3.0], [5.5, 5.5, 6.01]])
