@@ -8,7 +8,8 @@ the first pose (rotation and translation: a static camera must stay put). It is 
 frontend; the full pipeline is ``kmvipe run SOURCE``.
 
 With ``--track`` every frame is first posed by the frame-rate tracker against the newest mapped keyframe, and
-anchored there as the ba service does (mapping then spends no flow on it); the report adds the ATE of those
+anchored there as the ba service does (mapping then spends no flow on it); with ``--live`` a keyframe's mapping
+also starts at its tracked pose, as the service does for a live keyframe only. The report adds the ATE of those
 first (tracked) poses.
 
 Usage:
@@ -108,7 +109,7 @@ def run_frontend(frames: list[SourceFrame], focal: float | None = None,
                                                tracked_flow=flow)))
             return
         guess = None
-        if anchor is not None:  # as the ba service does: start mapping where tracking put it
+        if anchor is not None and live:  # as the ba service does for a live keyframe: start where tracking put it
             g = frontend.graph
             guess = g.poses[g.index(anchor[0])] @ anchor[1] if anchor[0] in g.seqs else anchor[2]
         behind = live and any(item[3] for item in queue)
