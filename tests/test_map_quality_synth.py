@@ -115,6 +115,10 @@ def test_unambiguous_labels_leave_out_points_between_two_surfaces():
     np.testing.assert_array_equal(labels, [0, 5, mq.AMBIGUOUS, -1])  # floor, leg, where they meet, nothing near
     nearest = mq.match_to_gt(points, gt, 0.1)
     assert gt.label[nearest.index[2]] == 0  # the nearest-point rule calls the foot of the leg floor
+    moved = gt._replace(dynamic=np.r_[np.zeros(100, bool), np.ones(5, bool)])  # the chair moves in the sequence
+    np.testing.assert_array_equal(mq.unambiguous_labels(points, moved, 0.1, moving=False),
+                                  [0, mq.MOVING, mq.MOVING, -1])
+    np.testing.assert_array_equal(mq.unambiguous_labels(points, moved, 0.1), labels)
 
 
 def test_inside_any_box_grows_the_boxes_by_the_margin():

@@ -106,18 +106,26 @@ def match_to_gt(map_xyz: np.ndarray, gt: GtPoints, max_dist: float) -> Matching:
 
 AMBIGUOUS = -2
 """Label of a map point whose ``max_dist`` neighbourhood holds GT points of more than one label."""
+MOVING = -3
+"""Label of a map point within ``max_dist`` of a moving object's GT point (``unambiguous_labels(moving=False)``)."""
 
 
-def unambiguous_labels(map_xyz: np.ndarray, gt: GtPoints, max_dist: float) -> np.ndarray:
+def unambiguous_labels(map_xyz: np.ndarray, gt: GtPoints, max_dist: float, moving: bool = True) -> np.ndarray:
     """(M,) GT label of each map point: the one label of every GT point within ``max_dist``; -1 when none lies
     that close, ``AMBIGUOUS`` when they disagree. A voxel there fuses the features of two surfaces (a chair leg
-    and the floor round it), so it has no single true label and its nearest GT point's is a coin toss."""
-    near = cKDTree(gt.xyz).query_ball_point(np.asarray(map_xyz, np.float64), max_dist)
+    and the floor round it), so it has no single true label and its nearest GT point's is a coin toss.
+    ``moving=False``: a point near any GT point of an object that moves during the sequence is ``MOVING``: the map
+    leaves such objects out, so where they were (and are) says nothing of the static map's labels."""
+    xyz = np.asarray(map_xyz, np.float64)
+    near = cKDTree(gt.xyz).query_ball_point(xyz, max_dist)
     out = np.full(len(near), -1, np.int64)
     for i, idx in enumerate(near):
         if idx:
             labels = gt.label[idx]
             out[i] = labels[0] if (labels == labels[0]).all() else AMBIGUOUS
+    if not moving and gt.dynamic.any() and len(xyz):
+        dist, _ = cKDTree(gt.xyz[gt.dynamic]).query(xyz)
+        out[dist <= max_dist] = MOVING
     return out
 
 
