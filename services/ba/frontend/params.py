@@ -147,9 +147,11 @@ class FrontendParams:
     # keyframes; 0: never
     live_max_deferred: int = 3  # a keyframe may leave its window BA to a later one (KeyframeInput.defer_ba) at
     # most this many times in a row
-    live_window: int = 12  # keyframes in a real-time stream's sliding window: BA cost grows with the window's
+    live_window: int = 16  # keyframes in a real-time stream's sliding window: BA cost grows with the window's
     # edges (bench/ba.py: 0.13 s for 10 keyframes, 0.35 s for 25), and mapping that falls behind a camera leaves
-    # tracking on a keyframe ever further back; the end-of-stream BA still spans every held keyframe
+    # tracking on a keyframe ever further back; the end-of-stream BA still spans every held keyframe. 16, not 12:
+    # KITTI 07 live 0.37-0.41 m against 0.37-0.44 m and focal -0.2 to -0.5 % against -1.2 to -1.5 %, for ~10 %
+    # more window BA time (docs/BENCHMARKS.md)
     live_calibration: str = "when_undetermined"  # a real-time stream's focal restarts (focal_after keyframes):
     # "always" as a lossless stream, or only "when_undetermined" (the map as it is ends its BA at a focal bound),
     # since each restart stalls mapping (KITTI 07, 2 cores: 8 s of stall and 44 keyframes queued behind it)
