@@ -23,7 +23,7 @@ import torch
 from services.ba.core import flow as core_flow
 from services.ba.core import se3
 from services.ba.core.host_arrays import as_numpy
-from services.ba.frontend import init, inputs, motion, relocalise, start, steps, upkeep
+from services.ba.frontend import init, inputs, keyframe_pose, start, steps, upkeep
 from services.ba.frontend.frames import FramePoses, FrameRecord
 from services.ba.frontend.graph import KeyframeGraph, Targets, grid_intrinsics, working_intrinsics
 from services.ba.frontend.inputs import FrameInput, KeyframeInput
@@ -87,7 +87,8 @@ class Frontend(Refinement):
         g = self.graph
         if not self.initialised:
             return self._try_initialise()
-        support = self._align_keyframe(k)
+        support, relocalised = keyframe_pose.align_keyframe(g, k, self._carried, self.params)
+        self.relocalised += relocalised
         turned = ("keyframe its flow barely supports" if self._lost_support(k, support)
                   else "keyframe in a burst" if self._in_burst(k) else None)
         if turned:
@@ -135,7 +136,8 @@ class Frontend(Refinement):
         # its depth carried over from the newest keyframe a BA refined (not that keyframe's map as it is; one hop,
         # not along a chain of carried depths): the BA that comes starts there, and tracking takes it as its
         # reference at once
-        src = self._newest_refined(k)
+        src = keyframe_pose.newest_refined(g, self._carried, k)
+        src = k - 1 if src is None else src
         disparity, known = propagate_disparity(g.poses[src], g.poses[k], g.disparity[src], g.intrinsics)
         g.disparity[k] = torch.from_numpy(disparity).to(g.disparity[k - 1])
         self._carried[g.seqs[k]] = known
@@ -249,64 +251,6 @@ class Frontend(Refinement):
         they came several apart are something moving through the view (its flow may be well supported: a rigid
         thing filling the view aligns like camera motion), and kept they become the window's gauge."""
         return steps.early(self.graph, k, self.params.burst_gap)
-
-    def _align_keyframe(self, k: int) -> float:
-        """Keyframe ``k``'s pose from its flow to the keyframe before. Returns the share of the grid that supports
-        it (the alignment's robust weight), 0 where the step was implausible and the bounded prediction taken.
-        After a deferred keyframe (its depth carried over, no BA yet) only the cells where a point landed count,
-        and the pose is aligned again jointly with the newest keyframe a BA refined (:meth:`_align_to_refined`)."""
-        g = self.graph
-        t = g.targets(k - 1, k)
-        known = self._measured(k - 1)
-        # the filled-in cells of a carried-over depth hold the median disparity, not a point: aligned to them, a
-        # chain of deferred keyframes drifts in scale (KITTI live, mapping 4 keyframes behind: +23 % over frames
-        # 20-50 as the car speeds up)
-        confidence = t.confidence.to(self.device) if known is None else t.confidence.to(self.device) * known
-        res = motion.align(g.poses[k], g.poses[k - 1][None], g.disparity[k - 1][None], t.target[None].to(self.device),
-                           confidence[None], g.intrinsics, self.params.motion)
-        aligned, res = res, relocalise.realign_keyframe(g, k, res, self.params.motion, self.params.relocalise, known)
-        self.relocalised += res is not aligned
-        pose = torch.from_numpy(res.pose).to(g.poses[k]) if res.ok else g.poses[k]
-        if res.ok and known is not None:
-            pose = self._align_to_refined(k, pose)
-        if not steps.plausible(g, pose, k, self.params.max_step_growth):
-            logger.info("keyframe pose implausible; bounded constant-velocity prediction kept",
-                        extra={"seq": g.seqs[k]})
-            g.poses[k] = steps.bounded_prediction(g, k)
-            return 0.0
-        g.poses[k] = pose
-        cells = g.disparity[k - 1].numel() if known is None else max(float(known.sum()), 1.0)
-        return res.weight / cells if res.ok else 0.0
-
-    def _align_to_refined(self, k: int, pose: torch.Tensor) -> torch.Tensor:
-        """``pose`` of keyframe ``k`` (aligned to the deferred keyframe before it) aligned again to that keyframe's
-        measured cells and to the newest keyframe whose depth a BA refined, together: the carried-over depth
-        alone is a visual odometry's. One more flow per deferred keyframe (at the live flow size); ``pose``
-        unchanged if the alignment fails."""
-        g = self.graph
-        refined = self._newest_refined(k - 1)
-        if refined == k - 1:
-            return pose
-        pair = [k - 1, refined]
-        flows = [g.targets(i, k) for i in pair]
-        confidence = torch.stack([flows[0].confidence.to(self.device) * self._measured(k - 1),
-                                  flows[1].confidence.to(self.device)])
-        targets = torch.stack([f.target.to(self.device) for f in flows])
-        res = motion.align(pose, torch.stack([g.poses[i] for i in pair]), torch.stack([g.disparity[i] for i in pair]),
-                           targets, confidence, g.intrinsics, self.params.motion)
-        return torch.from_numpy(res.pose).to(pose) if res.ok and bool(np.isfinite(res.pose).all()) else pose
-
-    def _newest_refined(self, k: int) -> int:
-        """The newest keyframe before ``k`` whose depth a BA refined (not a deferred one's carried depth); ``k - 1``
-        when there is none."""
-        seqs = self.graph.seqs
-        return next((i for i in range(k - 1, -1, -1) if seqs[i] not in self._carried), k - 1)
-
-    def _measured(self, k: int) -> torch.Tensor | None:
-        """(h, w) 1 where keyframe ``k``'s depth holds a point, 0 where it was filled in; None: all of it (a BA
-        refined it)."""
-        known = self._carried.get(self.graph.seqs[k])
-        return None if known is None else torch.from_numpy(np.asarray(known, np.float32)).to(self.device)
 
     def _window(self) -> list[int]:
         n = len(self.graph)

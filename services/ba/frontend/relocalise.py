@@ -24,29 +24,40 @@ def realign_keyframe(graph: KeyframeGraph, k: int, aligned: MotionResult, motion
     the grid (of its cells that hold a point: ``known``, (h, w) 0/1, where ``k - 1``'s depth was carried over).
     Returns the result the flow supports more (the larger robust weight); the graph's cached flows and pose of
     ``k`` are left as that start made them."""
-    cells = graph.disparity[k - 1].numel() if known is None else max(float(known.sum()), 1.0)
-    if aligned.ok and aligned.weight >= params.below_share * cells:
+    n_cells = cells(graph, k, known)
+    if aligned.ok and aligned.weight >= params.below_share * n_cells:
         return aligned
     found = pnp_pose(graph.images[k - 1], graph.poses[k - 1], graph.disparity[k - 1], graph.intrinsics,
                      graph.images[k], params)
     if found is None:
         logger.info("keyframe barely supported and not relocalised (too few ORB matches agree)",
-                    extra={"seq": graph.seqs[k], "share": round(aligned.weight / cells, 3)})
+                    extra={"seq": graph.seqs[k], "share": round(aligned.weight / n_cells, 3)})
         return aligned
     guess, before = graph.poses[k], graph.take_flows(k - 1, k)
     graph.poses[k] = torch.from_numpy(found.pose).to(guess)
     t = graph.targets(k - 1, k)
     dev = graph.device
-    confidence = t.confidence.to(dev) if known is None else t.confidence.to(dev) * known.to(dev)
+    confidence = masked(t.confidence.to(dev), known)
     res = motion.align(found.pose, graph.poses[k - 1][None], graph.disparity[k - 1][None], t.target[None].to(dev),
                        confidence[None], graph.intrinsics, motion_params)
     better = res.ok and bool(np.isfinite(res.pose).all()) and (not aligned.ok or res.weight > aligned.weight)
     logger.info("keyframe relocalised" if better else "keyframe's relocalised start less supported; kept",
-                extra={"seq": graph.seqs[k], "inliers": found.inliers, "share_before": round(aligned.weight / cells, 3),
-                       "share_after": round(res.weight / cells, 3)})
+                extra={"seq": graph.seqs[k], "inliers": found.inliers,
+                       "share_before": round(aligned.weight / n_cells, 3), "share_after": round(res.weight / n_cells, 3)})
     if better:
         return res
     graph.take_flows(k - 1, k)
     graph.put_flows(before)
     graph.poses[k] = guess
     return aligned
+
+
+def masked(confidence: torch.Tensor, known: torch.Tensor | None) -> torch.Tensor:
+    """Flow ``confidence`` of keyframe ``k - 1``'s cells, 0 where its carried-over depth was filled in (``known``:
+    (h, w) 0/1; None: every cell holds a point)."""
+    return confidence if known is None else confidence * known.to(confidence)
+
+
+def cells(graph: KeyframeGraph, k: int, known: torch.Tensor | None) -> float:
+    """How many of keyframe ``k - 1``'s grid cells hold a point: the denominator of a support share."""
+    return float(graph.disparity[k - 1].numel()) if known is None else max(float(known.sum()), 1.0)
