@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from services.mapstore.config import CarvingParams, ConsistencyParams, MapParams, MapstoreSettings
-from services.mapstore.core.carving import free_space_votes, nearest_disparity_at
+from services.mapstore.core.carving import CarveView, free_space_votes, nearest_disparity_at, unit_codes
 from services.mapstore.core.map import KeyframeMap
 from tests.helpers.carving_scene import (BOX, MOVED_BOX, OCCLUDER, WALL_Z, H, W, Rect, add_keyframe, cam_pose,
                                          near_rect, points_of, render_disparity, view)
@@ -134,3 +134,39 @@ def test_a_new_keyframe_re_fuses_only_the_earlier_keyframes_whose_carving_it_cha
     assert refreshed[4] == [0, 1, 2, 4]  # the second one is: the keyframes that saw the box there are re-fused
     assert refreshed[5] == [5]  # a third changes no verdict (2 of the 3 most recent already see through)
     assert near_rect(m.fused().xyz, BOX).sum() == 0
+
+
+def test_views_judged_together_vote_as_one_view_at_a_time():
+    """`free_space_votes` judges several views at once; each point must still hear only its `recent_views` most
+    recent deciding views. The reference judges each view alone and lets the points listen view by view."""
+    rng = np.random.default_rng(7)
+    m, k = 600, 8
+    pts = np.column_stack([rng.uniform(-1.5, 1.5, m), rng.uniform(-1.0, 1.0, m), rng.uniform(2.0, 4.0, m)])
+    codes = rng.normal(size=(m, k))
+    views = []
+    for i in range(13):  # two grid shapes, some views without reliability or codes, depths near and past the points
+        h, w = (12, 16) if i % 3 else (9, 12)
+        pose = np.eye(4)
+        pose[:3, 3] = rng.normal(scale=0.05, size=3)
+        grid = np.array([2.0 * w, 2.0 * w, 4.0 * w - 0.5, 4.0 * h - 0.5])  # working-resolution intrinsics
+        disparity = (1.0 / (3.0 * rng.choice([0.97, 1.0, 1.3, 0.6]) * rng.uniform(0.9, 1.1, (h, w)))).astype(np.float32)
+        disparity[rng.random((h, w)) < 0.1] = 0.0
+        reliability = None if i % 4 == 0 else rng.uniform(0.0, 1.0, (h, w))
+        view_codes = None if i % 5 == 0 else unit_codes(rng.normal(size=(h, w, k)))
+        views.append(CarveView(np.linalg.inv(pose), disparity, grid, reliability, view_codes))
+    params = CarvingParams(recent_views=3, min_reliability=0.3)
+    together = free_space_votes(pts, views, params, codes)
+
+    deciding, through, contradicted = (np.zeros(m, np.int64) for _ in range(3))
+    for v in views:
+        alone = free_space_votes(pts, [v], params, codes)  # one view: its own verdict on every point
+        listens = deciding < params.recent_views
+        deciding += listens * alone.deciding
+        through += listens * alone.seen_through
+        contradicted += listens * alone.contradicted
+    assert deciding.max() == params.recent_views and through.any() and contradicted.any()  # every kind of verdict
+    np.testing.assert_array_equal(together.deciding, deciding)
+    np.testing.assert_array_equal(together.seen_through, through)
+    np.testing.assert_array_equal(together.contradicted, contradicted)
+    np.testing.assert_array_equal(together.carved, (through >= params.min_violations) & (2 * through > deciding))
+    assert together.carved.any() and not together.carved.all()

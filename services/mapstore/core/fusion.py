@@ -22,6 +22,7 @@ version's map), so the fused map is the same with or without folding.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import repeat
 from typing import NamedTuple
 
 import numpy as np
@@ -209,9 +210,11 @@ class VoxelGrid:
 
     def _slots(self, keys: np.ndarray) -> np.ndarray:
         """Slots of `keys`, creating the missing ones."""
-        slots = np.empty(keys.shape[0], np.int64)
-        for i, key in enumerate(keys.tolist()):
-            slot = self._slot_of.get(key)
+        get = self._slot_of.get
+        slots = np.fromiter(map(get, keys.tolist(), repeat(-1)), np.int64, keys.shape[0])  # in C, no Python loop
+        for i in np.flatnonzero(slots < 0).tolist():  # the new voxels, one dict lookup each
+            key = int(keys[i])
+            slot = get(key)
             if slot is None:
                 slot = self._free.pop() if self._free else self._new_slot()
                 self._slot_of[key] = slot
