@@ -26,7 +26,7 @@ from typing import NamedTuple
 import numpy as np
 
 from services.mapstore.config import CarvingParams
-from services.mapstore.core.geometry import grid_intrinsics, transform_points
+from services.mapstore.core.geometry import grid_intrinsics, project, transform_points
 
 
 class CarveView(NamedTuple):
@@ -189,8 +189,16 @@ def free_space_votes(points_world: np.ndarray, views_newest_first: list[CarveVie
 _VIEWS_AT_ONCE = 8
 
 
+class _Verdicts(NamedTuple):
+    """V views' verdicts on M points ((V, M) bool each; all False where a point does not land on a known cell)."""
+
+    agree: np.ndarray  # the view agrees with the point (and does not contradict it)
+    free: np.ndarray  # the view sees through or contradicts the point
+    contradicted: np.ndarray  # of `free`, those the view's codes contradict
+
+
 def _verdicts(views: list[CarveView], points_world: np.ndarray, unit_points: np.ndarray | None,
-              params: CarvingParams) -> "_Verdicts":
+              params: CarvingParams) -> _Verdicts:
     """(V, M) verdicts of ``views`` on the points, judged together by grid shape."""
     out = _Verdicts(*(np.zeros((len(views), points_world.shape[0]), bool) for _ in range(3)))
     by_shape: dict[tuple[int, int], list[int]] = {}
@@ -203,25 +211,14 @@ def _verdicts(views: list[CarveView], points_world: np.ndarray, unit_points: np.
     return out
 
 
-class _Verdicts(NamedTuple):
-    """V views' verdicts on M points ((V, M) bool each; all False where a point does not land on a known cell)."""
-
-    agree: np.ndarray  # the view agrees with the point (and does not contradict it)
-    free: np.ndarray  # the view sees through or contradicts the point
-    contradicted: np.ndarray  # of `free`, those the view's codes contradict
-
-
 def _judge(views: list[CarveView], points_world: np.ndarray, unit_points: np.ndarray | None,
            params: CarvingParams) -> _Verdicts:
     """Verdicts of views whose maps share one (h, w) grid, as pairs (view, point) flattened view-major."""
     n_views, m = len(views), points_world.shape[0]
     h, w = views[0].disparity.shape
-    cam = np.stack([transform_points(view.cam_from_world, points_world) for view in views])  # (V, M, 3)
-    k = np.stack([grid_intrinsics(view.intrinsics) for view in views])[:, :, None]  # (V, 4, 1)
-    z = cam[..., 2]
-    safe = np.where(z > 0, z, np.nan)
-    u, v = (cam[..., 0] / safe * k[:, 0] + k[:, 2]).reshape(-1), (cam[..., 1] / safe * k[:, 1] + k[:, 3]).reshape(-1)
-    z = z.reshape(-1)
+    proj = [project(transform_points(view.cam_from_world, points_world), grid_intrinsics(view.intrinsics))
+            for view in views]
+    u, v, z = (np.concatenate([getattr(p, axis) for p in proj]) for axis in ("u", "v", "z"))
     col, row = np.rint(u), np.rint(v)
     pair = np.flatnonzero((z > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h))
     view_of = pair // m
