@@ -90,6 +90,10 @@ class BaSettings(BASettings):
     at 10 Hz on 2 cores merging from 24 queued broke the map (8-28 m), while queueing up to 55 ended at 0.46-0.67 m."""
     realtime_max_merged: int = 1
     """At most this many keyframes in a row are merged; then one is mapped whatever the backlog."""
+    keyframe_flow_downscale: int = Field(FrontendParams.keyframe_flow_downscale, ge=1, le=4)
+    """Lossless streams: keyframe edge flows at 1/this of the working size. 1 (default): full size, the accuracy the
+    ATE targets are met with; 2: 4x less DIS, lossless KITTI 07 end to end 1.7 -> 2.4 fps (ba 99 -> 66 CPU-s) for
+    ATE 0.30 -> 0.32 m (docs/BENCHMARKS.md)."""
     live_flow_downscale: int = FrontendParams.live_flow_downscale
     """Real-time streams: keyframe edge flows at 1/this of the working size (mapping keeps up with a live camera)."""
     live_iterations: int = FrontendParams.live_iterations
@@ -220,6 +224,7 @@ class BaSettings(BASettings):
             global_ba=self.ba_params(global_ba=True), flow=self.flow_params(), focal_after=self.focal_after,
             focal_until=self.focal_until, ark_with_focal=self.ark_with_focal, keep_keyframes=self.keep_keyframes,
             live_flow_downscale=self.live_flow_downscale, live_iterations=self.live_iterations,
+            keyframe_flow_downscale=self.keyframe_flow_downscale,
             live_max_deferred=self.live_max_deferred, final_align_s=self.final_align_s,
             live_window=self.live_window, live_flow_preset=self.live_flow_preset,
             live_calibration=self.live_calibration, background_ba_every=self.background_ba_every,

@@ -70,7 +70,7 @@ class Frontend(Refinement):
             pose = kf.pose_guess.to(self.device, torch.float64)
         k = g.append(kf.seq, kf.t_ns, grey, codes, prior, pose, disp, kf.native_codes)
         self._live = kf.realtime
-        g.flow_downscale = self.params.live_flow_downscale if kf.realtime else 1
+        g.flow_downscale = self.params.live_flow_downscale if kf.realtime else self.params.keyframe_flow_downscale
         # the cheap preset only refines flow the map predicts; the two-view start has no prediction to begin from
         # (ultrafast alone failed it on 128x96 live flows)
         g.flow_preset = self.params.live_flow_preset if kf.realtime and self.initialised else None

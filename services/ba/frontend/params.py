@@ -127,6 +127,8 @@ class FrontendParams:
     # stream BA still use); older ones leave the graph with their frames, so memory does not grow with the stream.
     # KITTI 07 (90 keyframes): end-of-stream BA over all of them gives ATE 0.32 m, over the last 40 0.63 m
     # (bench/frontend.py; docs/BENCHMARKS.md)
+    keyframe_flow_downscale: int = 1  # a lossless stream's keyframe edge flows at 1/this of the working size: 2 is
+    # 4x less DIS (KITTI 07 in process: edge flows 25.2 -> 6.6 s, wall 72 -> 54 s) for ATE 0.306 -> 0.316 m
     live_flow_downscale: int = 2  # keyframes of a real-time stream get their edge flows at 1/this of the working
     # size (DIS 52 -> 12 ms per flow on KITTI): a live camera's mapping must keep up with its keyframes
     live_flow_preset: str = "ultrafast"  # DIS preset of a real-time stream's keyframe edge flows: 10.6 ms per
