@@ -200,10 +200,12 @@ class _Verdicts(NamedTuple):
 def _verdicts(views: list[CarveView], points_world: np.ndarray, unit_points: np.ndarray | None,
               params: CarvingParams) -> _Verdicts:
     """(V, M) verdicts of ``views`` on the points, judged together by grid shape."""
-    out = _Verdicts(*(np.zeros((len(views), points_world.shape[0]), bool) for _ in range(3)))
     by_shape: dict[tuple[int, int], list[int]] = {}
     for i, view in enumerate(views):
         by_shape.setdefault(view.disparity.shape, []).append(i)
+    if len(by_shape) == 1:  # one stream's keyframes share a grid: no regrouping, no copy
+        return _judge(views, points_world, unit_points, params)
+    out = _Verdicts(*(np.zeros((len(views), points_world.shape[0]), bool) for _ in range(3)))
     for group in by_shape.values():
         verdict = _judge([views[i] for i in group], points_world, unit_points, params)
         for arr, values in zip(out, verdict):
