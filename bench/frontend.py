@@ -16,6 +16,8 @@ Usage:
   python bench/frontend.py ../shared/data/kitti07_160 --focal 919.2      # KITTI 07 from a +30 % focal
   python bench/frontend.py ../shared/data/kitti07_160 --track            # the live path's tracking too
   python bench/frontend.py ../shared/data/vtest/vtest.avi --max-frames 300
+  python bench/frontend.py synth:frames=10000,width=256,height=192,span=8333 --max-frames 2500 --track \
+      --drift-stretch 500                                                     # laps of a room: drift on revisits
 """
 from __future__ import annotations
 
@@ -41,11 +43,12 @@ from services.ba.tracking_process import half_size
 from services.common.config import LogSettings
 from services.common.lifecycle import tune_malloc_for_tensors
 from services.common.logs import setup_logging
+from services.evaluation.drift import drift_by_stretch
 from services.evaluation.trajectory_io import Trajectory, write_tum
 from services.features.core.geometry import Intrinsics, fov_prior, resize_to_working, to_grey, working_size
 from services.features.core.keyframes import KeyframeParams, KeyframeSelector
 from services.ingest.sources import SourceFrame, open_source
-from services.runner.groundtruth import evaluate
+from services.runner.groundtruth import MAX_STAMP_DIFF_S, evaluate, source_groundtruth
 
 
 @dataclass
@@ -161,6 +164,8 @@ def main() -> None:
     parser.add_argument("--log-level", default="WARNING", choices=["DEBUG", "INFO", "WARNING", "ERROR"],
                         help="INFO shows the graph's decisions (keyframes removed, edges, BA refusals)")
     parser.add_argument("--out", type=Path, default=None, help="write the TUM trajectory here")
+    parser.add_argument("--drift-stretch", type=int, default=None, metavar="N",
+                        help="also the error per N frames with the estimate aligned on its first N (drift on revisits)")
     parser.add_argument("--track", action="store_true", help="pose every frame by tracking first (the live path)")
     parser.add_argument("--live", action="store_true", help="keyframes flagged real-time (mapping's live settings)")
     parser.add_argument("--map-lag", type=int, default=0, help="mapping runs this many keyframes behind tracking")
@@ -201,6 +206,11 @@ def main() -> None:
     ate = evaluate(args.source, est)
     if ate is not None:
         print(f"ATE sim3 rmse {ate.rmse:.3f} m  max {ate.max:.3f} m  pairs {ate.n_pairs}")
+    if ate is not None and args.drift_stretch:
+        print(f"aligned on the first {args.drift_stretch} frames: mean error (m) / scale against them, per stretch: "
+              + ", ".join(f"{s.first}: {s.mean_error:.4f} / {s.scale_ratio:.4f}"
+                          for s in drift_by_stretch(source_groundtruth(args.source), est, args.drift_stretch,
+                                                    MAX_STAMP_DIFF_S)))
     if args.track:
         at_once = evaluate(args.source, run.trajectory(first=True))
         if at_once is not None:

@@ -128,3 +128,35 @@ def test_cli_prints_statistics(tmp_path, capsys):
     assert "pairs      10" in out and "rmse       0.000000" in out and "scale      1.000000" in out
     args = parser.parse_args(["eval", "ate", "--gt", str(tmp_path / "missing.txt"), "--est", str(tmp_path / "est.txt")])
     assert args.func(args) == 2
+
+
+def test_drift_by_stretch_finds_the_scale_drift_and_the_offset_it_leaves():
+    from services.evaluation.drift import drift_by_stretch
+
+    # a circle walked three times; the estimate is exact for the first 100 poses, then its scale about the start
+    # grows by 10 % per further 100 poses, all of it in a rotated, shifted, scaled frame (Sim(3) to recover)
+    n = 300
+    theta = np.linspace(0, 6 * np.pi, n, endpoint=False)
+    ref = np.stack([np.cos(theta), np.sin(theta), 0.1 * np.sin(3 * theta)], 1) * 2.0
+    growth = np.where(np.arange(n) < 100, 1.0, 1.0 + 0.1 * (np.arange(n) // 100))
+    est_local = ref * growth[:, None]
+    c, s = np.cos(0.3), np.sin(0.3)
+    rot = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    est = 0.5 * est_local @ rot.T + np.array([1.0, -2.0, 0.5])
+
+    def traj(points):
+        poses = np.tile(np.eye(4), (n, 1, 1))
+        poses[:, :3, 3] = points
+        return Trajectory(np.arange(n, dtype=np.float64), poses)
+
+    stretches = drift_by_stretch(traj(ref), traj(est), 100)
+    assert [(s.first, s.count) for s in stretches] == [(0, 100), (100, 100), (200, 100)]
+    assert [s.scale_ratio for s in stretches] == pytest.approx([1.0, 1.1, 1.2], abs=1e-9)
+    # aligned on the first stretch, a point at radius r ends 10 % / 20 % of r off (|ref| is 2 m, give or take z)
+    assert stretches[0].mean_error == pytest.approx(0.0, abs=1e-9)
+    radius = np.linalg.norm(ref, axis=1)
+    for stretch, excess in zip(stretches[1:], (0.1, 0.2)):
+        part = slice(stretch.first, stretch.first + stretch.count)
+        assert stretch.mean_error == pytest.approx(excess * radius[part].mean(), rel=1e-9)
+    with pytest.raises(ValueError, match="at least 3"):
+        drift_by_stretch(traj(ref), traj(est), 2)

@@ -84,3 +84,54 @@ def test_loop_edges_are_set_from_the_environment(monkeypatch):
     monkeypatch.setenv("KMVIPE_BA_LOOP_EVERY", "2")
     graph = BaSettings().frontend_params().graph
     assert (graph.loop_max_edges, graph.loop_every) == (0, 2)
+
+
+def test_a_keyframe_back_at_a_landmark_is_linked_to_it_and_to_the_lap_before():
+    # keyframes 0-9 are landmarks (the first lap, kept past keep_keyframes); 10-39 the recent lap: each kind of
+    # target gets its own loop edge, so the lap before (whose drift it shares) does not hide the first visit
+    graph = _lap_graph(_pose(0.02, radius=2.05))
+    graph.landmarks = set(range(0, 40, 4))
+    linked = _linked(graph, GraphParams(loop_max_edges=1))
+    assert len(linked) == 2 and len(linked & graph.landmarks) == 1 and 0 in linked
+    # the next keyframe gets neither kind: both were linked lately
+    window = list(range(LAP - 8, LAP + 2))
+    graph.append(LAP + 1, LAP + 1, np.zeros((H * 8, W * 8), np.uint8), None, None, _pose(2 * math.pi / LAP),
+                 torch.full((H, W), 1.0 / 3.0, dtype=torch.float64))
+    upkeep.add_loop_edges(graph, LAP + 1, window, GraphParams(loop_max_edges=1))
+    assert {a for a, b in graph.proximity if b == LAP + 1} == set()
+
+
+def test_temporal_edges_skip_landmarks_and_linked_landmarks_are_found():
+    graph = _lap_graph(_pose(0.0))
+    graph.landmarks = {0, 4}
+    pairs = graph.pairs(list(range(LAP + 1)), radius=2)
+    assert not any({a, b} & {0, 4} for a, b in pairs)  # list neighbours of a landmark are laps apart
+    assert (1, 2) in pairs and (3, 5) in pairs  # the recent keyframes' neighbours close over the landmark's gap
+    assert graph.recent() == [k for k in range(LAP + 1) if k not in (0, 4)]
+    graph.proximity |= {(LAP, 4), (4, LAP)}
+    assert graph.linked_landmarks(list(range(30, LAP + 1))) == [4]
+    assert graph.linked_landmarks(list(range(30, LAP))) == []
+    assert 4 in {b for a, b in graph.pairs([4] + list(range(30, LAP + 1)), radius=2) if a == LAP}
+    graph.remove(4)
+    assert graph.landmarks == {0}
+
+
+def test_a_keyframe_leaving_is_a_new_place_unless_a_landmark_shows_it():
+    graph = _lap_graph(_pose(0.0))
+    gp = GraphParams()
+    assert upkeep.new_place(graph, 3, gp)  # no landmark yet
+    graph.landmarks = {graph.seqs[2]}
+    assert not upkeep.new_place(graph, 3, gp)  # 9 degrees on, most of landmark 2's wall is in view
+    assert upkeep.new_place(graph, 20, gp)  # the other side of the circle
+
+
+def test_a_graph_pickled_before_landmarks_existed_loads_with_none():
+    import pickle
+
+    graph = _lap_graph(_pose(0.0))
+    state = dict(graph.__dict__)
+    del state["landmarks"]
+    old = KeyframeGraph.__new__(KeyframeGraph)
+    old.__dict__.update(state)
+    loaded = pickle.loads(pickle.dumps(old))
+    assert loaded.landmarks == set() and loaded.recent() == list(range(LAP + 1))

@@ -77,6 +77,11 @@ class BaSettings(BASettings):
     """Huber threshold of motion-only alignment (grid px)."""
     keep_keyframes: int = FrontendParams.keep_keyframes
     """Keyframes held in memory; older ones leave with their frames (their last published poses are final)."""
+    landmark_keyframes: int = Field(FrontendParams.landmark_keyframes, ge=0)
+    """Keyframes leaving the held ones that show a place no landmark shows stay as landmarks, up to this many (0:
+    none): fixed targets of loop edges, so that a camera that comes back ties to its first visit."""
+    landmark_overlap: float = Field(GraphParams.landmark_overlap, gt=0, le=1)
+    """A leaving keyframe is a new place unless a landmark has this share of its pixels land in it."""
     realtime_defer_backlog: int = 1
     """Real-time streams: when this many keyframes wait for mapping, the next one is only aligned and joins the
     graph, its window BA left to a later keyframe (at most ``live_max_deferred`` in a row); every keyframe stays in
@@ -214,7 +219,7 @@ class BaSettings(BASettings):
                             proximity_max_flow=self.proximity_max_flow, proximity_max_edges=self.proximity_max_edges,
                             proximity_overlap=self.proximity_overlap, loop_max_edges=self.loop_max_edges,
                             loop_every=self.loop_every, remove_max_flow=self.remove_max_flow,
-                            global_radius=self.global_radius)
+                            global_radius=self.global_radius, landmark_overlap=self.landmark_overlap)
         return FrontendParams(
             graph=graph, init=InitParams(min_keyframes=self.init_keyframes, min_flow=self.init_min_flow,
                                          max_keyframes=self.init_max_keyframes),
@@ -223,6 +228,7 @@ class BaSettings(BASettings):
             burst_gap=self.burst_gap,
             global_ba=self.ba_params(global_ba=True), flow=self.flow_params(), focal_after=self.focal_after,
             focal_until=self.focal_until, ark_with_focal=self.ark_with_focal, keep_keyframes=self.keep_keyframes,
+            landmark_keyframes=self.landmark_keyframes,
             live_flow_downscale=self.live_flow_downscale, live_iterations=self.live_iterations,
             keyframe_flow_downscale=self.keyframe_flow_downscale,
             live_max_deferred=self.live_max_deferred, final_align_s=self.final_align_s,

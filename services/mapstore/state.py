@@ -20,7 +20,7 @@ stored keyframe whose basis is unknown). A ``Keyframe`` that carries its codes w
 
 Flat memory: each ba graph lists the keyframes ba still holds; a keyframe older than the newest of them that it
 does not list has left ba's graph for good (ba keeps its newest ``keep_keyframes`` and sometimes drops a
-redundant one from the middle). Such a keyframe is *settled* once its codes are in (or it came from a real-time
+redundant one from the middle; the landmarks it keeps past them are not listed: their poses are fixed, final). Such a keyframe is *settled* once its codes are in (or it came from a real-time
 stream, whose codes may never come) and no codes wait for its basis; after every re-fusion the oldest settled
 keyframes whose carving window is settled too are folded (`KeyframeMap.fold`; the policy is
 services/mapstore/folding_policy.py): recorded in the store's

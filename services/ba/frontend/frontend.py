@@ -150,11 +150,19 @@ class Frontend(Refinement):
         return Update(poses=pose_update(self.graph, self.frames, sorted(set(seqs))))
 
     def _retire(self) -> None:
-        """Drop the oldest keyframes beyond ``keep_keyframes`` with the frames before the new oldest one."""
-        g = self.graph
-        while len(g) > self.params.keep_keyframes:
-            g.remove(0)
-        self.frames.drop_before(g.seqs[0])
+        """Drop the oldest keyframes beyond ``keep_keyframes`` with the frames before the new oldest one; of those
+        that show a place no landmark shows, up to ``landmark_keyframes`` stay as landmarks."""
+        g, p = self.graph, self.params
+        recent = g.recent()
+        while len(recent) > p.keep_keyframes:
+            k = recent[0]
+            if len(g.landmarks) < p.landmark_keyframes and upkeep.new_place(g, k, p.graph):
+                g.landmarks.add(g.seqs[k])
+                logger.info("keyframe kept as a landmark", extra={"seq": g.seqs[k], "landmarks": len(g.landmarks)})
+            else:
+                g.remove(k)
+            recent = g.recent()
+        self.frames.drop_before(g.seqs[recent[0]])
 
     def reference(self) -> Reference | None:
         """Snapshot of the newest keyframe for the tracker, in numpy (None before the map starts)."""
@@ -253,9 +261,8 @@ class Frontend(Refinement):
         return steps.early(self.graph, k, self.params.burst_gap)
 
     def _window(self) -> list[int]:
-        n = len(self.graph)
         size = self.params.live_window if self._live else self.params.graph.window
-        return list(range(max(0, n - size), n))
+        return self.graph.recent()[-size:]
 
     def _add_proximity(self, k: int) -> None:
         upkeep.add_proximity(self.graph, k, self._window(), self.params.graph)

@@ -71,6 +71,9 @@ class KeyframeGraph:
         self.static: list[torch.Tensor] = []  # (h, w) float32 ARK static weight
         self.confidence: list[torch.Tensor] = []  # (h, w) float32 mean out-edge flow confidence
         self.proximity: set[tuple[int, int]] = set()  # directed (seq_i, seq_j)
+        # seqs of keyframes held past keep_keyframes as the places a camera comes back to: the oldest keyframe of
+        # each place, fixed, so that loop edges to them tie later laps to the first (Frontend._retire)
+        self.landmarks: set[int] = set()
         self._cache: dict[tuple[int, int], Targets] = {}
         # Once poses and depths mean something, DIS starts from the flow they induce: from zero it loses the
         # near road and parked cars of a car doing 0.8 m/frame (KITTI 07), and the scale collapses.
@@ -87,6 +90,10 @@ class KeyframeGraph:
 
     def __len__(self) -> int:
         return len(self.seqs)
+
+    def __setstate__(self, state: dict) -> None:
+        state.setdefault("landmarks", set())  # a checkpoint written before landmarks existed
+        self.__dict__.update(state)
 
     def index(self, seq: int) -> int:
         return self.seqs.index(seq)
@@ -123,6 +130,7 @@ class KeyframeGraph:
                       self.disparity, self.static, self.confidence):
             del store[k]
         self.proximity = {e for e in self.proximity if seq not in e}
+        self.landmarks.discard(seq)
         self._cache = {e: t for e, t in self._cache.items() if seq not in e}
         self._small.pop(seq, None)
         self._texture.pop(seq, None)
@@ -198,10 +206,22 @@ class KeyframeGraph:
         return small
 
     def pairs(self, window: list[int], radius: int) -> list[tuple[int, int]]:
-        """Directed edges (positions) inside ``window``: temporal ones and stored proximity ones."""
+        """Directed edges (positions) inside ``window``: temporal ones (between keyframes that are not landmarks:
+        a landmark's neighbours in the list are laps apart) and stored proximity ones."""
         inside = {self.seqs[k]: k for k in window}
         prox = [(inside[a], inside[b]) for a, b in self.proximity if a in inside and b in inside]
-        return sorted(set(temporal_pairs(window, radius)) | set(prox))
+        recent = [k for k in window if self.seqs[k] not in self.landmarks]
+        return sorted(set(temporal_pairs(recent, radius)) | set(prox))
+
+    def recent(self) -> list[int]:
+        """Positions of the keyframes that are not landmarks (the newest ``keep_keyframes``)."""
+        return [k for k, seq in enumerate(self.seqs) if seq not in self.landmarks]
+
+    def linked_landmarks(self, keyframes: list[int]) -> list[int]:
+        """Positions of the landmarks with a proximity edge to one of ``keyframes``."""
+        inside = {self.seqs[k] for k in keyframes}
+        linked = {b for a, b in self.proximity if a in inside} | {a for a, b in self.proximity if b in inside}
+        return [k for k, seq in enumerate(self.seqs) if seq in self.landmarks and seq in linked]
 
     def stacked(self, window: list[int]) -> BAState:
         return BAState(torch.stack([self.poses[k] for k in window]),

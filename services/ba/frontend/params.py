@@ -76,6 +76,8 @@ class GraphParams:
     # upkeep.add_loop_edges), chosen as proximity_pairs chooses, where ...
     loop_overlap: float = 0.5  # ... at least this share of the old keyframe's pixels land in the new one, ...
     loop_every: int = 4  # ... and none of the keyframes this close before it got one
+    landmark_overlap: float = 0.7  # a keyframe leaving the held ones stays as a landmark unless a landmark has this
+    # share of its pixels land in it with less than proximity_max_flow (upkeep.new_place)
     remove_max_flow: float = 1.0  # the newest keyframe is redundant when its flow to the previous is below this
     global_radius: int = 3  # temporal radius of the global BA's own edge set
 
@@ -127,6 +129,9 @@ class FrontendParams:
     # stream BA still use); older ones leave the graph with their frames, so memory does not grow with the stream.
     # KITTI 07 (90 keyframes): end-of-stream BA over all of them gives ATE 0.32 m, over the last 40 0.63 m
     # (bench/frontend.py; docs/BENCHMARKS.md)
+    landmark_keyframes: int = 64  # keyframes leaving the held ones that show a place no landmark shows stay, up to
+    # this many (0: none), fixed, as loop edges' targets: later laps tie to the first instead of to the lap before,
+    # whose drift they share (Frontend._retire; KeyframeGraph.landmarks)
     keyframe_flow_downscale: int = 1  # a lossless stream's keyframe edge flows at 1/this of the working size: 2 is
     # 4x less DIS (KITTI 07 in process: edge flows 25.2 -> 6.6 s, wall 72 -> 54 s) for ATE 0.306 -> 0.316 m
     live_flow_downscale: int = 2  # keyframes of a real-time stream get their edge flows at 1/this of the working

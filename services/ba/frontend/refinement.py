@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
 from typing import Callable
 
 from services.ba.frontend.updates import Update, graph_update, pose_update
@@ -91,8 +92,8 @@ class Refinement:
             return Update()
         self._since_global = 0
         self._background_bas += 1
-        newest = p.background_ba_keyframes if p.background_ba_keyframes > 0 else len(g)
-        keyframes = list(range(max(0, len(g) - newest), len(g)))
+        recent = g.recent()
+        keyframes = recent[-p.background_ba_keyframes:] if p.background_ba_keyframes > 0 else recent
         began = time.monotonic()
         accepted = self._global_ba(p.background_ba_s, keyframes)
         logger.info("background BA", extra={"keyframes": len(keyframes), "accepted": accepted,
@@ -107,7 +108,8 @@ class Refinement:
         g, p = self.graph, self.params
         if p.settle_all_keyframes or not self._background_bas:
             return None
-        return list(range(max(0, len(g) - self._since_global - p.graph.window), len(g)))
+        recent = g.recent()
+        return recent[max(0, len(recent) - self._since_global - p.graph.window):]
 
     def _end_bound_s(self) -> float:
         """The end-of-stream BA's time bound (0: none): ``global_ba_s``, and ``settled_global_ba_s`` once
@@ -118,13 +120,17 @@ class Refinement:
         return min((b for b in bounds if b > 0), default=0.0)
 
     def _global_ba(self, bound_s: float, keyframes: list[int] | None = None) -> bool:
-        """The BA over ``keyframes`` (positions, the oldest the gauge; default every held keyframe) with the global
-        edge set, within ``bound_s`` seconds (:func:`time_bound`; 0: all its iterations); False when its result was
-        refused."""
+        """The BA over ``keyframes`` (positions, the oldest the gauge; default every held keyframe but the
+        landmarks) and the landmarks their loop edges reach, fixed with the gauge, with the global edge set, within
+        ``bound_s`` seconds (:func:`time_bound`; 0: all its iterations); False when its result was refused."""
         g = self.graph
-        keyframes = list(range(len(g))) if keyframes is None else keyframes
-        return g.run(keyframes, g.pairs(keyframes, self.params.graph.global_radius),
-                     self._ba_params(keyframes, self.params.global_ba), time_bound(bound_s)) is not None
+        keyframes = g.recent() if keyframes is None else keyframes
+        landmarks = g.linked_landmarks(keyframes)
+        params = self._ba_params(keyframes, self.params.global_ba)
+        if landmarks:  # older than every held keyframe, so first in the span: the poses held fixed
+            params = replace(params, fixed_poses=len(landmarks) + 1)
+        span = landmarks + keyframes
+        return g.run(span, g.pairs(span, self.params.graph.global_radius), params, time_bound(bound_s)) is not None
 
     def refine_frame(self) -> Update:
         """Mapping's spare time on a live stream, one frame per call; its revised pose in the update (empty when

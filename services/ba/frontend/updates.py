@@ -15,7 +15,7 @@ log = logging.getLogger(__name__)
 
 
 class GraphUpdate(NamedTuple):
-    kf_seqs: np.ndarray  # (N,) int64 every keyframe
+    kf_seqs: np.ndarray  # (N,) int64 every keyframe held, landmarks aside
     poses: np.ndarray  # (N, 4, 4) float64 world_from_cam
     intrinsics: np.ndarray  # (4,) float64 at working resolution
     updated_seqs: np.ndarray  # (M,) int64 keyframes whose maps below changed
@@ -38,9 +38,14 @@ class Update(NamedTuple):
 
 
 def graph_update(g: KeyframeGraph, updated: list[int], metric: bool) -> GraphUpdate:
-    """Every keyframe's pose, and the maps of the keyframes at positions ``updated``."""
+    """Every held keyframe's pose, and the maps of the keyframes at positions ``updated``. Landmarks are left out, as
+    keyframes that left the graph are: their poses are final (the BA holds them fixed), and the mapstore folds
+    them in order with the others."""
+    recent = g.recent()
+    updated = [k for k in updated if g.seqs[k] not in g.landmarks]
     return GraphUpdate(
-        kf_seqs=np.array(g.seqs, np.int64), poses=to_numpy(g.poses, np.float64),
+        kf_seqs=np.array([g.seqs[k] for k in recent], np.int64), poses=to_numpy([g.poses[k] for k in recent],
+                                                                                np.float64),
         intrinsics=working_intrinsics(g.intrinsics), updated_seqs=np.array([g.seqs[k] for k in updated], np.int64),
         disparities=to_numpy([g.disparity[k] for k in updated], np.float32),
         static_weights=to_numpy([g.static[k] for k in updated], np.float32),

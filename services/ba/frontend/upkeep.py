@@ -47,14 +47,30 @@ def add_loop_edges(g: KeyframeGraph, k: int, window: list[int], gp: GraphParams)
     BA never sees them; the BA over every held keyframe (``Refinement.refine_globally``, the end of stream) does,
     and pulls the drift since back (the 10,000-frame orbit's scale drifted +27 % over 23 laps without them). At
     most every ``gp.loop_every``-th keyframe: each edge costs a flow and BA work, and two on every keyframe slowed
-    the 10,000-frame stream's mapping until tracking, short of CPU, skipped frames (docs/BENCHMARKS.md)."""
+    the 10,000-frame stream's mapping until tracking, short of CPU, skipped frames (docs/BENCHMARKS.md).
+    Landmarks (``KeyframeGraph.landmarks``) get their own edges on the same terms: among the recent keyframes an
+    edge goes to the previous lap, whose drift it shares."""
     if gp.loop_max_edges <= 0 or not window or window[0] == 0:
         return
+    older = range(window[0])
+    recent = [c for c in older if g.seqs[c] not in g.landmarks]
+    landmarks = [c for c in older if g.seqs[c] in g.landmarks]
+    for cands in (recent, landmarks):
+        if cands and not _looped_lately(g, k, cands, len(window), gp):
+            _add_loop_edges_to(g, k, cands, gp)
+
+
+def _looped_lately(g: KeyframeGraph, k: int, cands: list[int], reach: int, gp: GraphParams) -> bool:
+    """Whether one of the ``gp.loop_every`` keyframes up to ``k`` has a loop edge (one reaching at least ``reach``
+    keyframes back, past the window it had) to one of ``cands``: it holds the drift as well."""
     position = {seq: i for i, seq in enumerate(g.seqs)}  # one pass, not a list search per edge end
+    targets = {g.seqs[c] for c in cands}
     first_recent = max(0, k - gp.loop_every + 1)
-    if any(first_recent <= position[a] < k and position[a] - position[b] >= len(window) for a, b in g.proximity):
-        return  # one of the last loop_every keyframes has its loop edges: they hold the drift as well
-    cands = list(range(window[0]))
+    return any(b in targets and first_recent <= position[a] < k and position[a] - position[b] >= reach
+               for a, b in g.proximity)
+
+
+def _add_loop_edges_to(g: KeyframeGraph, k: int, cands: list[int], gp: GraphParams) -> None:
     state = g.stacked(cands + [k])
     ii = torch.arange(len(cands), device=state.poses.device)
     parts = edges.flow_parts(state.poses, state.disparity, g.intrinsics, ii, torch.full_like(ii, len(cands)))
@@ -63,6 +79,19 @@ def add_loop_edges(g: KeyframeGraph, k: int, window: list[int], gp: GraphParams)
     if chosen:
         logger.info("loop edges", extra={"seq": g.seqs[k], "to": sorted({g.seqs[b] for a, b in chosen if a == k})})
     g.proximity |= {(g.seqs[a], g.seqs[b]) for a, b in chosen}
+
+
+def new_place(g: KeyframeGraph, k: int, gp: GraphParams) -> bool:
+    """Whether keyframe ``k`` (about to leave the held keyframes) shows a place no landmark shows: no landmark has
+    ``gp.landmark_overlap`` of its pixels land in ``k`` with an induced flow below ``gp.proximity_max_flow``."""
+    landmarks = [c for c, seq in enumerate(g.seqs) if seq in g.landmarks]
+    if not landmarks:
+        return True
+    state = g.stacked(landmarks + [k])
+    ii = torch.arange(len(landmarks), device=state.poses.device)
+    parts = edges.flow_parts(state.poses, state.disparity, g.intrinsics, ii, torch.full_like(ii, len(landmarks)))
+    seen = (parts.overlap >= gp.landmark_overlap) & (parts.induced < gp.proximity_max_flow)
+    return not bool(seen.any())
 
 
 def unconstrained(g: KeyframeGraph, window: list[int]) -> int | None:
