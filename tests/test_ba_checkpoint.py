@@ -65,6 +65,27 @@ def test_a_state_restored_from_its_checkpoint_continues_exactly_like_the_uninter
     assert other.load(resumed.frontend.device) is None
 
 
+def test_landmarks_survive_a_restart(tmp_path):
+    # 4 keyframes held, so the stream's first keyframes leave early and some stay as landmarks
+    cfg = _settings().model_copy(update={"window": 3, "keep_keyframes": 4, "landmark_keyframes": 2})
+    _, msgs = synth_stream(n_frames=40, rendered=40, every=4, stream=STREAM, width=128)
+    uninterrupted = service.build_state(cfg)
+    for msg in msgs[:30]:
+        service.handle(uninterrupted, msg, cfg)
+    assert uninterrupted.frontend.graph.landmarks
+    Checkpointer(str(tmp_path), STREAM, "s1", period_s=0.0).save(uninterrupted)
+    resumed = service.build_state(cfg)
+    assert recovery.resume(resumed, Checkpointer(str(tmp_path), STREAM, "s1", period_s=2.0), cfg) == 29
+    assert resumed.frontend.graph.landmarks == uninterrupted.frontend.graph.landmarks
+    for msg in msgs[30:-1]:
+        service.handle(uninterrupted, msg, cfg), service.handle(resumed, msg, cfg)
+    assert resumed.frontend.graph.landmarks == uninterrupted.frontend.graph.landmarks
+    a, b = service.handle(uninterrupted, msgs[-1], cfg), service.handle(resumed, msgs[-1], cfg)  # the EOS
+    pa, pb = _final_poses(a), _final_poses(b)
+    assert pa.final and pa.frame_seqs.tolist() == pb.frame_seqs.tolist()  # those still held; the rest went out before
+    np.testing.assert_allclose(pa.poses, pb.poses, rtol=0, atol=0)
+
+
 def test_a_kill_while_writing_leaves_the_previous_checkpoint(tmp_path):
     _, _, state = _state_after(6, rendered=9, width=128)
     saver = Checkpointer(str(tmp_path), STREAM, "s1", period_s=0.0)
