@@ -217,11 +217,14 @@ class KeyframeGraph:
         """Positions of the keyframes that are not landmarks (the newest ``keep_keyframes``)."""
         return [k for k, seq in enumerate(self.seqs) if seq not in self.landmarks]
 
+    def landmark_positions(self) -> list[int]:
+        return [k for k, seq in enumerate(self.seqs) if seq in self.landmarks]
+
     def linked_landmarks(self, keyframes: list[int]) -> list[int]:
         """Positions of the landmarks with a proximity edge to one of ``keyframes``."""
         inside = {self.seqs[k] for k in keyframes}
         linked = {b for a, b in self.proximity if a in inside} | {a for a, b in self.proximity if b in inside}
-        return [k for k, seq in enumerate(self.seqs) if seq in self.landmarks and seq in linked]
+        return [k for k in self.landmark_positions() if self.seqs[k] in linked]
 
     def stacked(self, window: list[int]) -> BAState:
         return BAState(torch.stack([self.poses[k] for k in window]),

@@ -52,28 +52,26 @@ def add_loop_edges(g: KeyframeGraph, k: int, window: list[int], gp: GraphParams)
     edge goes to the previous lap, whose drift it shares."""
     if gp.loop_max_edges <= 0 or not window or window[0] == 0:
         return
+    position = {seq: i for i, seq in enumerate(g.seqs)}  # one pass, not a list search per edge end
+    first_recent = max(0, k - gp.loop_every + 1)
+    # a loop edge of one of the last loop_every keyframes (one reaching past the window it had) holds the drift
+    # as well: per kind of target, so that one to the lap before does not stand for one to a landmark
+    looped = {b for a, b in g.proximity if first_recent <= position[a] < k and position[a] - position[b] >= len(window)}
     older = range(window[0])
-    recent = [c for c in older if g.seqs[c] not in g.landmarks]
-    landmarks = [c for c in older if g.seqs[c] in g.landmarks]
-    for cands in (recent, landmarks):
-        if cands and not _looped_lately(g, k, cands, len(window), gp):
+    for cands in ([c for c in older if g.seqs[c] not in g.landmarks], [c for c in older if g.seqs[c] in g.landmarks]):
+        if cands and not looped & {g.seqs[c] for c in cands}:
             _add_loop_edges_to(g, k, cands, gp)
 
 
-def _looped_lately(g: KeyframeGraph, k: int, cands: list[int], reach: int, gp: GraphParams) -> bool:
-    """Whether one of the ``gp.loop_every`` keyframes up to ``k`` has a loop edge (one reaching at least ``reach``
-    keyframes back, past the window it had) to one of ``cands``: it holds the drift as well."""
-    position = {seq: i for i, seq in enumerate(g.seqs)}  # one pass, not a list search per edge end
-    targets = {g.seqs[c] for c in cands}
-    first_recent = max(0, k - gp.loop_every + 1)
-    return any(b in targets and first_recent <= position[a] < k and position[a] - position[b] >= reach
-               for a, b in g.proximity)
+def _flow_parts_into(g: KeyframeGraph, cands: list[int], k: int) -> edges.FlowParts:
+    """:func:`edges.flow_parts` of the pairs ``cands`` -> ``k`` (positions)."""
+    state = g.stacked(cands + [k])
+    ii = torch.arange(len(cands), device=state.poses.device)
+    return edges.flow_parts(state.poses, state.disparity, g.intrinsics, ii, torch.full_like(ii, len(cands)))
 
 
 def _add_loop_edges_to(g: KeyframeGraph, k: int, cands: list[int], gp: GraphParams) -> None:
-    state = g.stacked(cands + [k])
-    ii = torch.arange(len(cands), device=state.poses.device)
-    parts = edges.flow_parts(state.poses, state.disparity, g.intrinsics, ii, torch.full_like(ii, len(cands)))
+    parts = _flow_parts_into(g, cands, k)
     dist = torch.where(parts.overlap >= gp.loop_overlap, parts.induced, torch.full_like(parts.induced, float("inf")))
     chosen = edges.proximity_pairs(k, cands, dist.cpu(), replace(gp, proximity_max_edges=gp.loop_max_edges))
     if chosen:
@@ -84,12 +82,10 @@ def _add_loop_edges_to(g: KeyframeGraph, k: int, cands: list[int], gp: GraphPara
 def new_place(g: KeyframeGraph, k: int, gp: GraphParams) -> bool:
     """Whether keyframe ``k`` (about to leave the held keyframes) shows a place no landmark shows: no landmark has
     ``gp.landmark_overlap`` of its pixels land in ``k`` with an induced flow below ``gp.proximity_max_flow``."""
-    landmarks = [c for c, seq in enumerate(g.seqs) if seq in g.landmarks]
+    landmarks = g.landmark_positions()
     if not landmarks:
         return True
-    state = g.stacked(landmarks + [k])
-    ii = torch.arange(len(landmarks), device=state.poses.device)
-    parts = edges.flow_parts(state.poses, state.disparity, g.intrinsics, ii, torch.full_like(ii, len(landmarks)))
+    parts = _flow_parts_into(g, landmarks, k)
     seen = (parts.overlap >= gp.landmark_overlap) & (parts.induced < gp.proximity_max_flow)
     return not bool(seen.any())
 
