@@ -104,7 +104,7 @@ def evaluate_run(out: Path, source: str, seed: int, dim: int, params: mq.MapQual
         vectors = label_vectors(len(LABEL_NAMES), dim, seed)
         seg: MapSegment = ask(state, "segment", MapQuery(STREAM, 0, 0, vectors=vectors, space="oracle"))
         answer: MapAnswer = ask(state, "query", MapQuery(STREAM, 1, 0, vectors=vectors, space="oracle", max_regions=10))
-        kf_seqs = sorted(state.map.contents)
+        kf_seqs = sorted(state.store.keyframe_ids())  # folded ones too: their points are in the map
         voxel = float(state.map.voxel_size or 0.0)
         disparities = {k: np.array(state.map.depths[k].disparity) for k in kf_seqs if k in state.map.depths}
     finally:
@@ -258,6 +258,8 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--frames", type=int, default=120, help="frames of the synthetic sequence (sets its motion speed)")
     p.add_argument("--max-frames", type=int, default=36, help="frames actually streamed")
+    p.add_argument("--source", default="", help="a whole synth: spec instead of --frames and --seed's, e.g. "
+                   "synth:frames=3000,width=256,height=192,span=2500 (a stream long enough for keyframes to fold)")
     p.add_argument("--seed", type=int, default=0, help="synthetic world and oracle label-vector seed")
     p.add_argument("--dim", type=int, default=64, help="oracle feature dimension")
     p.add_argument("--noise", type=float, default=0.1, help="oracle feature noise (relative norm)")
@@ -268,7 +270,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--timeout", type=float, default=900.0, help="seconds the pipeline run may take")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
-    source = f"synth:frames={args.frames},seed={args.seed}"
+    source = args.source or f"synth:frames={args.frames},seed={args.seed}"
     if not args.reuse:
         env = oracle_env(source, args.seed, args.dim, args.noise)
         if args.target_area:

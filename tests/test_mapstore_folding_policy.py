@@ -24,15 +24,17 @@ from tests.test_mapstore_memory import (COMPONENTS, KEEP, STREAM, Ba, assert_sam
                                         revised)
 
 
-def messages(n: int, codes_lag: int | None = None, realtime: bool = False, final: bool = True) -> list[Message]:
+def messages(n: int, codes_lag: int | None = None, realtime: bool = False, final: bool = True,
+             depth_noise: float = 0.0) -> list[Message]:
     """basis 1, then per keyframe: the keyframe, ba's graph of its window; with ``codes_lag`` the keyframes come
     without codes and each one's codes follow ``codes_lag`` keyframes later (after it left ba's graph when the lag
-    exceeds KEEP); the final graph and ba's EOS at the end."""
+    exceeds KEEP); the final graph and ba's EOS at the end. ``depth_noise``: relative noise on each disparity."""
     out: list[Message] = [basis(1)]
     ba, truth, image = Ba(), {}, np.full((8 * H, 8 * W, 3), 120, np.uint8)
     pending: list[KeyframeCodes] = []
     for i in range(n):
         pose, disparity, codes = keyframe_data(i, n)
+        disparity = disparity * (1 + depth_noise * np.random.default_rng(i).normal(size=disparity.shape))
         truth[i] = pose
         kf = Keyframe(STREAM, i, i * 10**6, image=image, intrinsics=INTR, pca_version=1, codes=codes,
                       realtime=realtime)
@@ -52,7 +54,10 @@ def messages(n: int, codes_lag: int | None = None, realtime: bool = False, final
 
 
 def settings(path: Path, **kw) -> MapstoreSettings:
-    """A carving window of 8 keyframes (16 by default) keeps the service tests quick; the core test uses 16."""
+    """A carving window of 8 keyframes (16 by default) keeps the service tests quick; the core test uses 16. Folded
+    voxels do not snap to the folded surface unless asked (``fold_snap_voxels``): without it the folded map is the
+    map without folding, which these tests compare with."""
+    kw.setdefault("fold_snap_voxels", 0.0)
     return MapstoreSettings(stream=STREAM, db_path=str(path / "{stream}.db"), device="cpu", synchronous="NORMAL",
                             voxel_mode="absolute", voxel_size=0.1, carve_keyframes=8, **kw)
 
@@ -119,12 +124,14 @@ def test_a_long_stream_holds_a_bounded_window_and_gives_the_map_without_folding(
 
 def test_a_restart_after_folding_reloads_the_same_map_a_page_at_a_time(tmp_path, monkeypatch):
     n, cut = 150, 110
-    msgs = messages(n)
+    msgs = messages(n, depth_noise=0.015)
     idx = next(j for j, m in enumerate(msgs) if isinstance(m, Graph) and m.seq == cut)
-    cfg = settings(tmp_path / "fold")
+    snap = MapstoreSettings().fold_snap_voxels  # as deployed: folded voxels join the folded surface
+    assert snap > 0
+    cfg = settings(tmp_path / "fold", fold_snap_voxels=snap)
     first = MapState(cfg)
     feed(first, msgs[: idx + 1])
-    assert first.map.folded_count > 40
+    assert first.map.folded_count > 40 and first.map.snapped_voxels > 100
     before, folded, count = first.map.fused(), first.map.folded_count, first.keyframe_count()
     first.close()
     monkeypatch.setattr(state_module, "RESTART_PAGE", 16)
@@ -143,7 +150,7 @@ def test_a_restart_after_folding_reloads_the_same_map_a_page_at_a_time(tmp_path,
     assert_same_fused(second.map.fused(), before)
     # the stream goes on after the restart and ends as one that was never interrupted
     feed(second, msgs[idx + 1 : -1])
-    whole = MapState(settings(tmp_path / "whole"))
+    whole = MapState(settings(tmp_path / "whole", fold_snap_voxels=snap))
     feed(whole, msgs[:-1])
     assert_same_fused(second.map.fused(), whole.map.fused())
     assert second.map.folded_count == whole.map.folded_count

@@ -9,12 +9,14 @@ tests/test_mapstore_folding_policy.py.
 """
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from services.common.schema import PcaBasis as PcaMessage
 from services.common.pca_codes import code_map, convert_codes
-from services.mapstore.config import CarvingParams, MapParams
+from services.mapstore.config import CarvingParams, FusionParams, MapParams
 from services.mapstore.core.fusion import FrozenSums, make_contribution, merge_contributions
 from services.mapstore.core.map import KeyframeMap, code_maps_to_latest
 from services.mapstore.core.scoring import PcaBasis
@@ -71,7 +73,10 @@ class Ba:
 
 
 # ----- the core ---------------------------------------------------------------------------------------------
-def build_core(n: int, fold: bool, params: MapParams = MapParams()) -> tuple[KeyframeMap, int, int]:
+UNSNAPPED = MapParams(fusion=FusionParams(fold_snap_voxels=0.0))  # folding alone changes nothing in the map
+
+
+def build_core(n: int, fold: bool, params: MapParams = UNSNAPPED) -> tuple[KeyframeMap, int, int]:
     """The map of an n-keyframe stream fed as ba sends it; (map, most keyframes held live at once, cells of the
     folded keyframes that later views carved)."""
     m = KeyframeMap(params, voxel_size=0.1)
@@ -142,7 +147,8 @@ def test_frozen_sums_of_old_pca_versions_are_carried_in_the_current_one():
     n = 90
     bases = {v: PcaBasis(v, np.asarray(basis(v).mean, np.float64), np.asarray(basis(v).components, np.float64),
                          "oracle") for v in (1, 2, 3)}
-    params = MapParams(carving=CarvingParams(semantic=False))  # carving of old points is not re-judged: keep it out
+    params = dataclasses.replace(UNSNAPPED, carving=CarvingParams(semantic=False))  # carving of old points is not
+    # re-judged: keep it out
 
     def build(fold: bool) -> KeyframeMap:
         m = KeyframeMap(params, voxel_size=0.1, versioned=True, frozen_versions=1)

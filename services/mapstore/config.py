@@ -100,6 +100,11 @@ class FusionParams:
     """Voxel edge: metres when `voxel_mode` is "absolute", else a fraction of the median depth."""
     voxel_mode: Literal["absolute", "relative"] = "relative"
     """"relative" (scale-free maps): edge = voxel_size × median depth of the first fused keyframe."""
+    fold_snap_voxels: float = 2.0
+    """A folding keyframe's voxel that no folded voxel holds joins the nearest folded voxel within this many voxels
+    along its line of sight (core/snapping.py): revisits stop thickening surfaces (the 10,000-frame orbit's map
+    93,035 → 51,519 voxels at keyframe 1,088; docs/BENCHMARKS.md). 0: every voxel stays where its points fell, and
+    the folded map equals the map without folding."""
 
 
 @dataclass(frozen=True)
@@ -177,6 +182,9 @@ class MapstoreSettings(KmVipeSettings):
     """Voxel edge: metres when voxel_mode is absolute, else a fraction of the median depth."""
     voxel_mode: Literal["absolute", "relative"] = "relative"
     """relative suits scale-free maps; absolute needs a metric map."""
+    fold_snap_voxels: float = Field(2.0, ge=0)
+    """A folding keyframe's voxels join the folded surface along their lines of sight within this many voxels
+    (FusionParams.fold_snap_voxels); 0: off."""
     consistency_neighbours: int = 2
     """Keyframes on each side a keyframe's depth is checked against (0 disables)."""
     min_weight: float = 0.1
@@ -237,6 +245,7 @@ class MapstoreSettings(KmVipeSettings):
                                                max_code_cosine=self.carve_max_code_cosine,
                                                occluder_margin=self.carve_occluder_margin,
                                                min_code_reliability=self.carve_min_code_reliability),
-                         fusion=FusionParams(voxel_size=self.voxel_size, voxel_mode=self.voxel_mode),
+                         fusion=FusionParams(voxel_size=self.voxel_size, voxel_mode=self.voxel_mode,
+                                             fold_snap_voxels=self.fold_snap_voxels),
                          scoring=ScoreParams(device=self.device))
 

@@ -136,6 +136,7 @@ def finish_stream(state: MapState, msg: Eos, cfg: MapstoreSettings) -> list[tupl
     log.info("end of stream", extra={"stream": msg.stream, "seq": msg.seq, "stage": msg.stage,
                                      "keyframes_without_codes": state.without_codes_count(),
                                      "keyframes_folded": state.map.folded_count, "late_codes": state.late_codes,
+                                     "voxels_snapped": state.map.snapped_voxels,
                                      "exported_before": state.final_export_s is not None,
                                      "re_fusions": state.re_fusion["refreshes"],
                                      "keyframes_re_fused": state.re_fusion["keyframes"],

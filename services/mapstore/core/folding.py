@@ -12,7 +12,8 @@ from typing import Callable
 import numpy as np
 
 from services.common.pca_codes import convert_sums
-from services.mapstore.core.fusion import FrozenSums
+from services.mapstore.core.fusion import Contribution, FrozenSums
+from services.mapstore.core.snapping import contains, snap_to_surface
 
 log = logging.getLogger(__name__)
 
@@ -68,9 +69,9 @@ class Folding:
 
     def fold(self, ids: list[int]) -> None:
         """Fold every live keyframe up to the newest of ``ids`` (`foldable` gives them in order): their current
-        contributions move to the frozen sums of their versions (the fused map does not change) and their data
-        leaves memory; a folded ready keyframe stays as a ghost (depth and pose) while it is among the
-        `consistency.neighbours` newest folded ones. Raises ValueError while a refresh is due."""
+        contributions move to the frozen sums of their versions (the fused map does not change, but for voxels that
+        join the folded surface along their rays: `_snapped`) and their data leaves memory; a folded ready keyframe
+        stays as a ghost (depth and pose) while it is among the `consistency.neighbours` newest folded ones. Raises ValueError while a refresh is due."""
         if not ids:
             return
         if self._dirty or self._recheck:
@@ -79,9 +80,10 @@ class Folding:
         for kf_id in [k for k in self.live if k <= upto]:
             entry = self._contrib.pop(kf_id, None)
             if entry is not None:
-                contribution, version = entry
-                self._frozen.setdefault(version if contribution.codes is not None else None,
-                                        FrozenSums()).add(contribution)
+                contribution = self._snapped(kf_id, *entry)
+                version = entry[1] if contribution.codes is not None else None
+                self._frozen.setdefault(version, FrozenSums()).add(contribution)
+                self._frozen_keys = np.union1d(self._frozen_keys, contribution.keys)
             content = self.contents.pop(kf_id, None)
             if content is not None:
                 self.folded_count += 1
@@ -98,6 +100,23 @@ class Folding:
         for table in (self.contents, self.depths, self.poses, self._unit_codes, self._views, self._carved):
             for kf_id in [k for k in table if k <= self.folded_upto and k not in ghosts]:
                 del table[kf_id]
+
+    def _snapped(self, kf_id: int, contribution: Contribution, version: int | None) -> Contribution:
+        """A folding keyframe's contribution joined to the folded surface along its rays
+        (``fusion.fold_snap_voxels``; core/snapping.py), the grid moved with it."""
+        reach = self.params.fusion.fold_snap_voxels
+        pose = self.poses.get(kf_id)
+        if reach <= 0 or pose is None:
+            return contribution
+        snapped = snap_to_surface(contribution, pose[:3, 3], self._frozen_keys, self.voxel_size, reach)
+        if snapped is not contribution:
+            self.snapped_voxels += int((~contains(snapped.keys, contribution.keys)).sum())  # moved: key gone
+            cmap = self._code_maps.get(version)
+            self._grid.apply(contribution, -1, cmap)
+            self._grid.apply(snapped, +1, cmap)
+            self._fused_cache = None
+            self.revision += 1
+        return snapped
 
     def _compact_frozen(self) -> None:
         """Beyond `frozen_versions` versions of frozen sums, convert the oldest into the current version (the grid

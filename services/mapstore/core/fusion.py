@@ -16,12 +16,12 @@ their own weight and point count per voxel, so a voxel seen only by such keyfram
 Folded keyframes (final: no later change can reach them, ``core/map.py``) hand their contribution to a
 `FrozenSums` of their PCA version: one merged contribution per version whose size follows the map (its voxels),
 not the number of keyframes. The grid treats it like any other contribution (a new basis re-sums it through its
-version's map), so the fused map is the same with or without folding.
+version's map), so folding alone does not change the fused map (snapping at the fold does: core/snapping.py).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from itertools import repeat
 from typing import NamedTuple
 
@@ -108,21 +108,27 @@ def merge_contributions(parts: list[Contribution]) -> Contribution:
     parts = [p for p in parts if p.keys.size] or parts[:1]
     if len(parts) == 1:
         return parts[0]
-    keys = np.concatenate([p.keys for p in parts])
-    order = np.argsort(keys, kind="stable")
-    sk = keys[order]
-    starts = np.flatnonzero(np.r_[True, sk[1:] != sk[:-1]])
-
-    def total(name: str, dtype: type) -> np.ndarray:
-        values = np.concatenate([getattr(p, name) for p in parts])[order]
-        return np.add.reduceat(values.astype(np.float64) if dtype != np.int64 else values, starts, axis=0).astype(dtype)
-
     with_codes = parts[0].codes is not None
     if any((p.codes is not None) != with_codes for p in parts):
         raise ValueError("cannot merge contributions with and without codes")
-    return Contribution(sk[starts], total("weight", np.float64), total("xyz", np.float64),
-                        total("codes", np.float32) if with_codes else None, total("colours", np.float32),
-                        total("count", np.int64))
+    joined = (np.concatenate([getattr(p, name) for p in parts]) if with_codes or name != "codes" else None
+              for name in (f.name for f in fields(Contribution)))
+    return sum_by_key(Contribution(*joined))
+
+
+def sum_by_key(c: Contribution) -> Contribution:
+    """``c`` with the rows that share a key summed into one (keys ascending; sums added in float64)."""
+    order = np.argsort(c.keys, kind="stable")
+    sk = c.keys[order]
+    starts = np.flatnonzero(np.r_[True, sk[1:] != sk[:-1]]) if sk.size else np.zeros(0, np.int64)
+
+    def total(values: np.ndarray | None) -> np.ndarray | None:
+        if values is None or not sk.size:
+            return values
+        wide = values[order] if values.dtype == np.int64 else values[order].astype(np.float64)
+        return np.add.reduceat(wide, starts, axis=0).astype(values.dtype)
+
+    return Contribution(sk[starts], total(c.weight), total(c.xyz), total(c.codes), total(c.colours), total(c.count))
 
 
 class FrozenSums:

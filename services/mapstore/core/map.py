@@ -23,7 +23,9 @@ state. Folding goes in id order, so the live keyframes are always the newest one
 `consistency.neighbours` folded ready keyframes keep their depth and pose (ghosts) as consistency neighbours of the
 oldest live ones. The fused map is the same as without folding, except that folded points are final: a new PCA
 basis converts their code sums exactly but no longer re-judges their semantic carving, and codes or graph updates
-for a folded keyframe are ignored (the caller keeps them out). Frozen sums are kept per PCA version for the newest
+for a folded keyframe are ignored (the caller keeps them out); and, with ``fusion.fold_snap_voxels``, a folding
+keyframe's voxels that no folded voxel holds join the folded surface along their lines of sight (core/snapping.py),
+so revisits do not thicken it. Frozen sums are kept per PCA version for the newest
 `frozen_versions` versions; an older version's sums are converted into the current version and merged there
 (exact now; a later basis then reaches them through one more projection), so many refits cannot multiply them.
 """
@@ -112,6 +114,8 @@ class KeyframeMap(Carving, Folding):
         self._fused_cache: FusedVoxels | None = None
         self.revision = 0
         self._frozen: dict[int | None, FrozenSums] = {}  # folded keyframes' sums per PCA version (None: no codes)
+        self._frozen_keys = np.zeros(0, np.int64)  # ascending keys of every voxel the frozen sums hold
+        self.snapped_voxels = 0  # folded keyframes' voxels moved onto the folded surface (fusion.fold_snap_voxels)
         self.folded_upto = -1  # the newest folded keyframe id: every keyframe at or below it is folded
         self.folded_count = 0  # keyframes folded (with content)
         self.folded_without_codes = 0  # of those, folded before their codes came (geometry only, or nothing)
