@@ -71,7 +71,8 @@ class Folding:
         """Fold every live keyframe up to the newest of ``ids`` (`foldable` gives them in order): their current
         contributions move to the frozen sums of their versions (the fused map does not change, but for voxels that
         join the folded surface along their rays: `_snapped`) and their data leaves memory; a folded ready keyframe
-        stays as a ghost (depth and pose) while it is among the `consistency.neighbours` newest folded ones. Raises ValueError while a refresh is due."""
+        stays as a ghost (depth and pose) while it is among the `consistency.neighbours` newest folded ones. Raises
+        ValueError while a refresh is due."""
         if not ids:
             return
         if self._dirty or self._recheck:

@@ -82,25 +82,16 @@ def make_contribution(
     n = points_world.shape[0]
     if weight.shape != (n,) or (codes is not None and codes.shape[0] != n) or colours.shape != (n, 3):
         raise ValueError("points, weight, codes and colours must have the same length")
-    keys = voxel_keys(np.floor(points_world / voxel_size).astype(np.int64))
-    order = np.argsort(keys, kind="stable")
-    sk = keys[order]
-    starts = np.flatnonzero(np.r_[True, sk[1:] != sk[:-1]]) if n else np.zeros(0, np.int64)
-    w = weight.astype(np.float64)[order]
-
-    def wsum(values: np.ndarray, dtype: type) -> np.ndarray:
-        if n == 0:
-            return np.zeros((0,) + values.shape[1:], dtype)
-        return np.add.reduceat((values[order] * w[:, None]).astype(dtype), starts, axis=0)
-
-    return Contribution(
-        keys=sk[starts],
-        weight=np.add.reduceat(w, starts) if n else np.zeros(0),
-        xyz=wsum(points_world.astype(np.float64), np.float64),
-        codes=None if codes is None else wsum(codes.astype(np.float32), np.float32),
-        colours=wsum(colours.astype(np.float32), np.float32),
-        count=np.diff(np.r_[starts, n]).astype(np.int64),
+    w = weight.astype(np.float64)
+    weighted = Contribution(  # one row per point: its weighted values, summed per voxel next
+        keys=voxel_keys(np.floor(points_world / voxel_size).astype(np.int64)),
+        weight=w,
+        xyz=points_world.astype(np.float64) * w[:, None],
+        codes=None if codes is None else (codes.astype(np.float32) * w[:, None]).astype(np.float32),
+        colours=(colours.astype(np.float32) * w[:, None]).astype(np.float32),
+        count=np.ones(n, np.int64),
     )
+    return sum_by_key(weighted)
 
 
 def merge_contributions(parts: list[Contribution]) -> Contribution:
