@@ -180,14 +180,12 @@ def test_spare_time_runs_the_global_ba_once_enough_keyframes_joined_and_never_fo
     assert params.global_ba_s == 0 and live._end_bound_s() == 0  # unbounded where no background BA ran
 
 
-def test_a_background_ba_over_the_newest_keyframes_leaves_the_older_ones_where_they_are():
-    """``background_ba_keyframes`` bounds the background BA (its memory and time grow with its edges): it spans the
-    newest that many held keyframes, the oldest of them its gauge; the keyframes before them keep their poses and
-    maps, and the update carries the maps of the keyframes it spanned only."""
+def _streamed_with_background_bas_over(keyframes: int):
+    """A short synthetic stream through a frontend whose background BAs span ``keyframes`` (3-keyframe window)."""
     from services.ba.frontend.params import GraphParams
 
     world, msgs = synth_stream(n_frames=60, rendered=27, every=3, width=256)
-    params = FrontendParams(graph=GraphParams(window=3), background_ba_every=8, background_ba_keyframes=5,
+    params = FrontendParams(graph=GraphParams(window=3), background_ba_every=8, background_ba_keyframes=keyframes,
                             focal_after=1000, global_ba=BAParams(iterations=3))
     fe = Frontend(params)
     for msg in msgs[:-1]:
@@ -195,6 +193,14 @@ def test_a_background_ba_over_the_newest_keyframes_leaves_the_older_ones_where_t
             fe.add_keyframe(KeyframeInput(msg.seq, msg.t_ns, msg.image, msg.intrinsics, msg.codes))
         else:
             fe.add_frame(FrameInput(msg.seq, msg.t_ns, msg.image))
+    return world, fe
+
+
+def test_a_background_ba_over_the_newest_keyframes_leaves_the_older_ones_where_they_are():
+    """``background_ba_keyframes`` bounds the background BA (its memory and time grow with its edges): it spans the
+    newest that many held keyframes, the oldest of them its gauge; the keyframes before them keep their poses and
+    maps, and the update carries the maps of the keyframes it spanned only."""
+    world, fe = _streamed_with_background_bas_over(5)
     g = fe.graph
     assert len(g) >= 7  # more than the 5 it spans and its gauge
     poses, disparity = [p.clone() for p in g.poses], [d.clone() for d in g.disparity]
@@ -208,6 +214,29 @@ def test_a_background_ba_over_the_newest_keyframes_leaves_the_older_ones_where_t
         assert (map_moved == 0) == (k < gauge), (k, map_moved)  # the gauge's map is in the BA
     rmse, length = ate_of(world, update.graph.kf_seqs, update.graph.poses)
     assert rmse < 0.01 * length
+
+
+def test_landmarks_a_background_ba_reaches_take_the_place_of_the_oldest_held_keyframes():
+    """The background BA's keyframes are bounded together with the landmarks their loop edges reach (its memory
+    is ba's high-water): with a landmark linked, a budget of 5 spans it and the 4 newest held keyframes, a landmark
+    no edge reaches stays out, and the held keyframe before them keeps its pose."""
+    world, fe = _streamed_with_background_bas_over(5)
+    g = fe.graph
+    assert len(g) >= 7  # two landmarks, the 4 newest and one held keyframe older than them
+    linked, unlinked = g.seqs[0], g.seqs[1]  # the first place, seen again by the newest keyframes (an orbit)
+    g.landmarks |= {linked, unlinked}
+    g.proximity |= {(g.seqs[-1], linked), (linked, g.seqs[-2])}
+    spans = []
+    g.run = lambda window, pairs, *args, run=g.run: spans.append([g.seqs[k] for k in window]) or run(window, pairs,
+                                                                                                    *args)
+    poses = [p.clone() for p in g.poses]
+    update = fe.refine_globally()
+    newest = [g.seqs[k] for k in g.recent()[-4:]]
+    assert spans == [[linked] + newest]
+    assert update.graph is not None and update.graph.updated_seqs.tolist() == newest
+    for k in range(len(g)):
+        moved = float((g.poses[k] - poses[k]).abs().max())
+        assert (moved == 0) == (g.seqs[k] not in newest[1:]), (k, moved)  # the gauge and all before it stay
 
 
 def test_end_of_stream_solves_every_measured_frame_again_with_the_flow_it_has():

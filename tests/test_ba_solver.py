@@ -145,7 +145,28 @@ def test_normal_equation_rows_match_autograd():
 
 
 def test_schur_step_equals_dense_solve():
-    state, problem, params = _linearised(seed=7)
+    _assert_schur_step_equals_dense_solve(*_linearised(seed=7))
+
+
+def test_schur_step_equals_dense_solve_with_a_landmark_many_edges_reach():
+    """Keyframes of very different out-degrees (one reached by every other, as a landmark by revisits), edges in
+    no particular order, more keyframes than one elimination chunk (schur.KEYFRAME_CHUNK): the coupling packed a
+    chunk at a time gives the dense solve's step."""
+    n = schur.KEYFRAME_CHUNK + 3
+    win = synthetic.make_window(n=n, h=6, w=8, focal=8.0, radius=n - 1, seed=3)
+    ii, jj = win.problem.ii, win.problem.jj
+    keep = ((ii - jj).abs() == 1) | (ii == 0) | (jj == 0)
+    order = torch.randperm(int(keep.sum()), generator=torch.Generator().manual_seed(0))
+    sel = torch.nonzero(keep).flatten()[order]
+    problem = win.problem._replace(ii=ii[sel], jj=jj[sel], targets=win.problem.targets[sel],
+                                   confidence=win.problem.confidence[sel], codes=_smooth_codes(n, 6, 8, 5, 3))
+    params = BAParams(lambda_embed=1.0, optimise_focal=True, compute_dtype=EXACT,
+                      robust=RobustParams(use_ark=True, kappa=0.5, tau=0.2))
+    assert int(torch.bincount(problem.ii).max()) == n - 1 and int(torch.bincount(problem.ii).min()) <= 3
+    _assert_schur_step_equals_dense_solve(_start(win, seed=3, trans=0.01, rot=0.5), problem, params)
+
+
+def _assert_schur_step_equals_dense_solve(state, problem, params):
     _, _, j_cam, j_disp, residual, weight, eq = _rows(state, problem, params)
     n, p = state.disparity.shape[0], 48
     free = ba._free_camera_indices(n, params, None)

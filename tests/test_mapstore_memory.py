@@ -185,3 +185,86 @@ def test_frozen_sums_merge_to_the_sum_of_their_parts():
     np.testing.assert_allclose(got.codes, want.codes, atol=1e-4)
     np.testing.assert_array_equal(got.count, want.count)
     assert len(frozen) == want.keys.size and frozen.nbytes > 0
+
+
+def _sums_point_by_point(parts, cmaps=None):
+    """Ground truth: every row of every part added into its voxel one at a time in float64 (codes through each
+    part's map into the new version where ``cmaps`` are given)."""
+    sums: dict[int, list] = {}
+    for i, p in enumerate(parts):
+        codes = p.codes.astype(np.float64)
+        if cmaps is not None and cmaps[i] is not None:
+            codes = codes @ cmaps[i].matrix.T + p.weight[:, None] * cmaps[i].offset
+        for r, key in enumerate(p.keys.tolist()):
+            s = sums.setdefault(key, [0.0, np.zeros(3), np.zeros(codes.shape[1]), np.zeros(3), 0])
+            s[0] += p.weight[r]
+            s[1] += p.xyz[r]
+            s[2] += codes[r]
+            s[3] += p.colours[r]
+            s[4] += int(p.count[r])
+    keys = np.array(sorted(sums))
+    return keys, [np.array([sums[k][f] for k in keys.tolist()]) for f in range(5)]
+
+
+def _random_parts(rng, n_parts: int, k: int, rows: int = 2000, voxel: float = 0.1):
+    points = [rng.uniform(-1, 1, (rows, 3)) for _ in range(n_parts)]
+    return [make_contribution(p, rng.uniform(0.1, 1, rows), rng.normal(size=(rows, k)).astype(np.float32),
+                              rng.integers(0, 255, (rows, 3)), voxel) for p in points]
+
+
+def test_voxel_sums_a_few_columns_at_a_time_equal_sums_point_by_point():
+    """Keyframe contributions and their merge sum their rows a few columns at a time (fusion.SUM_COLUMNS): the
+    sums equal every point added into its voxel one by one, a code size that is not a multiple of the chunk
+    included; and a merge's memory stays within a small multiple of its result (a whole field's sorted float64
+    copy was 5x it, the mapstore's high-water as its folded map grew)."""
+    import tracemalloc
+
+    from services.mapstore.core.fusion import SUM_COLUMNS
+
+    rng = np.random.default_rng(1)
+    k = 4 * SUM_COLUMNS + 3
+    # as the frozen sums merge: a folded part of distinct voxels and the few keyframes folded since
+    parts = _random_parts(rng, 1, k, rows=20000, voxel=0.02) + _random_parts(rng, 5, k, rows=1000, voxel=0.02)
+    keys, (weight, xyz, codes, colours, count) = _sums_point_by_point(parts)
+    tracemalloc.start()
+    merged = merge_contributions(parts)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    np.testing.assert_array_equal(merged.keys, keys)
+    np.testing.assert_allclose(merged.weight, weight, rtol=1e-12)
+    np.testing.assert_allclose(merged.xyz, xyz, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(merged.codes, codes, rtol=1e-5, atol=1e-5)  # float32 sums of float64 additions
+    np.testing.assert_allclose(merged.colours, colours, rtol=1e-5)
+    np.testing.assert_array_equal(merged.count, count)
+    result = sum(a.nbytes for a in (merged.keys, merged.weight, merged.xyz, merged.codes, merged.colours,
+                                    merged.count))
+    assert peak < 3 * result, (peak, result)  # 2.0x; 4.8x summed a whole field at once
+
+
+@pytest.mark.parametrize("k_new, peak_limit", [(24, 2.0), (29, 4.0)])  # 3.3x and 5.7x re-summed whole
+def test_a_grid_recoded_in_a_new_version_equals_its_parts_summed_in_it(k_new, peak_limit):
+    """A new PCA basis re-sums the grid's codes from its contributions, each through its own version's map, a few
+    columns and rows at a time (into the grid's own array where K is unchanged): equal to every row converted
+    and added one by one, and within a small multiple of the grid's codes in memory."""
+    import tracemalloc
+
+    from services.common.pca_codes import CodeMap
+    from services.mapstore.core.fusion import VoxelGrid
+
+    rng = np.random.default_rng(2)
+    k = 24
+    parts = _random_parts(rng, 1, k, rows=20000, voxel=0.02) + _random_parts(rng, 8, k, rows=1000, voxel=0.02)
+    grid = VoxelGrid(k)
+    for p in parts:
+        grid.apply(p, +1)
+    cmap = CodeMap(rng.normal(size=(k_new, k)), rng.normal(size=k_new))
+    cmaps = [cmap if i % 3 or k_new != k else None for i in range(len(parts))]  # some already in the new version
+    tracemalloc.start()
+    grid.recode(list(zip(parts, cmaps)), k_new)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    keys, (weight, _, codes, _, _) = _sums_point_by_point(parts, cmaps)
+    fused = grid.fused()
+    np.testing.assert_array_equal(fused.keys, keys)
+    np.testing.assert_allclose(fused.codes, codes / weight[:, None], rtol=1e-4, atol=1e-5)
+    assert peak < peak_limit * grid._codes.nbytes, (peak / grid._codes.nbytes)

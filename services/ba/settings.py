@@ -109,8 +109,8 @@ class BaSettings(BASettings):
     background_ba_s: float = FrontendParams.background_ba_s
     """... within this many seconds (it stops before an iteration that would end past them)."""
     background_ba_keyframes: int = FrontendParams.background_ba_keyframes
-    """... over the newest this many held keyframes (0: every one held): the BA's memory and time grow with its
-    keyframes' edges."""
+    """... over this many keyframes, the newest held ones and the landmarks they reach counted together (0:
+    ``keep_keyframes``): the BA's memory and time grow with its keyframes' edges."""
     background_ba_when_busy: bool = True
     """Lossless streams: the global BA also runs when it is due and keyframes wait (ba sets a lossless stream's
     pace: with no spare time it would never run, and the end of stream would do all of it)."""

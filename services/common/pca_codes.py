@@ -90,9 +90,11 @@ def convert_codes(codes: Codes, cmap: CodeMap) -> Codes:
     return (np.asarray(codes, np.float64) @ cmap.matrix.T + cmap.offset).astype(np.float32)
 
 
-def convert_sums(code_sums: np.ndarray, weight_sums: np.ndarray, cmap: CodeMap) -> np.ndarray:
-    """Apply ``cmap`` to weighted sums: (N, K_A) Σw·z and (N,) Σw → (N, K_B) float64 Σw·z_B = M Σw·z + c Σw."""
+def convert_sums(code_sums: np.ndarray, weight_sums: np.ndarray, cmap: CodeMap,
+                 columns: slice = slice(None)) -> np.ndarray:
+    """Apply ``cmap`` to weighted sums: (N, K_A) Σw·z and (N,) Σw → (N, K_B) float64 Σw·z_B = M Σw·z + c Σw;
+    ``columns`` of K_B only, if given."""
     if code_sums.ndim != 2 or weight_sums.shape != code_sums.shape[:1]:
         raise ValueError(f"code sums (N, K) and weight sums (N,) expected, got {code_sums.shape}, {weight_sums.shape}")
-    return (np.asarray(code_sums, np.float64) @ cmap.matrix.T
-            + np.asarray(weight_sums, np.float64)[:, None] * cmap.offset)
+    return (np.asarray(code_sums, np.float64) @ cmap.matrix[columns].T
+            + np.asarray(weight_sums, np.float64)[:, None] * cmap.offset[columns])

@@ -8,9 +8,10 @@ Each residual (edge ``e``, pixel ``p``, component ``r``) depends on ``[pose_i | 
 With the left-update convention the pose_j Jacobian is exactly minus the pose_i one
 (:mod:`services.ba.core.projective`), so only the 7 columns ``[pose_i | f]`` are formed and multiplied; the
 13-wide blocks are expanded from 7x7 products at the end (about 3.5x fewer flops than 13 columns).
-Per source keyframe, the camera-disparity coupling of all its out-edges is packed in a compact ``(N, D, P)``
-block, ``D = 7 + 6 * max_out_degree`` (pose_i and f shared, one pose_j slot per edge), so the Schur complement
-costs ``N * P * D^2`` instead of ``N * P * n_cam^2``.
+The camera-disparity coupling is held as its ``[pose_i | f]`` part per source keyframe ``(N, 7, P)`` and its
+``pose_j`` part per edge ``(E, 6, P)``; a few keyframes at a time it is packed into compact ``(c, D, P)`` blocks,
+``D = 7 + 6 * their largest out-degree`` (:func:`_packed`), so the Schur complement costs ``N * P * D^2``
+instead of ``N * P * n_cam^2`` and its memory grows with the edges, not with the busiest keyframe's degree.
 """
 from __future__ import annotations
 
@@ -54,7 +55,9 @@ def _expansion(dtype, device) -> torch.Tensor:
 
 CHUNK = 32  # edges whose float64 per-pixel copies exist at once
 KEYFRAME_CHUNK = 8  # keyframes whose float64 coupling blocks exist at once: each is (7 + 6 * out-degree) x P, 4 MB
-# at 10 out-edges on a 48x64 grid (32 at once were a global BA's peak, +105 MB)
+# at 10 out-edges on a 48x64 grid (32 at once were a global BA's peak, +105 MB) ...
+CHUNK_ROWS = KEYFRAME_CHUNK * (7 + 6 * 6)  # ... fewer where a keyframe has many more out-edges: at most this many
+# padded block rows at once (keyframe_chunks)
 
 
 def chunks(n: int, size: int = CHUNK) -> list[slice]:
@@ -72,12 +75,12 @@ def _edge_slots(ii: torch.Tensor, n_kf: int) -> tuple[torch.Tensor, int]:
     return slot, int(counts.max().item()) if len(ii) else 0
 
 
-def _add_edges(eq: NormalEquations, ii: torch.Tensor, jj: torch.Tensor, slot: torch.Tensor, n_kf: int, n_ext: int, *,
+def _add_edges(eq: NormalEquations, ii: torch.Tensor, jj: torch.Tensor, n_kf: int, n_ext: int, *,
                expand: torch.Tensor, big_h: torch.Tensor, big_g: torch.Tensor, h_dd: torch.Tensor, g_d: torch.Tensor,
-               coupling: torch.Tensor) -> None:
-    """Sum the normal equations of the edges ``ii -> jj`` (their ``slot`` among their source's out-edges) into the
-    camera system ``big_h`` (flat) / ``big_g``, the disparity diagonal ``h_dd`` / gradient ``g_d`` and the compact
-    camera-disparity ``coupling``, in place."""
+               own: torch.Tensor, target: torch.Tensor) -> None:
+    """Sum the normal equations of the edges ``ii -> jj`` into the camera system ``big_h`` (flat) / ``big_g``, the
+    disparity diagonal ``h_dd`` / gradient ``g_d`` and the camera-disparity coupling: its ``[xi_i, f]`` part per
+    source keyframe (``own``, summed) and its ``xi_j`` part per edge (``target``, these edges' rows), in place."""
     n_edges, n_res, n_pix = eq.j_disp.shape
     dtype, dev = big_h.dtype, big_h.device
     wr = eq.weight * eq.residual
@@ -102,8 +105,43 @@ def _add_edges(eq: NormalEquations, ii: torch.Tensor, jj: torch.Tensor, slot: to
     g_d.index_add_(0, ii, -(wr * eq.j_disp).sum(1).to(g_d.dtype))
     # sum over the few residual components explicitly: a batched matmul of P*E tiny matrices is far slower
     h_cd7 = sum(eq.j_cam[:, :, r] * wd[:, None, r] for r in range(n_res))  # (E, 7, P) = [xi_i, f]
-    coupling[:, :7].index_add_(0, ii, h_cd7.to(coupling.dtype))
-    coupling[ii[:, None], 7 + 6 * slot[:, None] + ar6] = -h_cd7[:, :6].to(coupling.dtype)
+    own.index_add_(0, ii, h_cd7.to(own.dtype))
+    target.copy_(-h_cd7[:, :6])
+
+
+def keyframe_chunks(out_degree: list[int]) -> list[slice]:
+    """Consecutive keyframe slices whose packed blocks (padded to the slice's largest out-degree) hold at most
+    ``CHUNK_ROWS`` rows, ``KEYFRAME_CHUNK`` keyframes at most, one keyframe at least."""
+    out, start, widest = [], 0, 0
+    for k, degree in enumerate(out_degree):
+        widest = max(widest, 7 + 6 * degree)
+        if k > start and ((k - start + 1) * widest > CHUNK_ROWS or k - start == KEYFRAME_CHUNK):
+            out.append(slice(start, k))
+            start, widest = k, 7 + 6 * degree
+    return out + [slice(start, len(out_degree))] if out_degree else out
+
+
+def _packed(chunk: slice, own: torch.Tensor, target: torch.Tensor, ii: torch.Tensor, jj: torch.Tensor,
+            slot: torch.Tensor, n_kf: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The compact coupling of the keyframes ``chunk``: ``(c, D, P)``, ``D = 7 + 6 * their largest out-degree``
+    (``[xi_i, f]`` then one ``xi_j`` slot per out-edge, zero where a keyframe has fewer), and the camera column of
+    each row ``(c, D)`` (a padded slot's is the dummy column ``6 N + 1``). Packed a chunk at a time from the
+    per-keyframe and per-edge parts: padded to the largest out-degree of all keyframes at once, one landmark that
+    many revisits reach made every keyframe's block that wide (a background BA's coupling +100 MB)."""
+    ar6 = torch.arange(6, device=ii.device)
+    n_rows = chunk.stop - chunk.start
+    mine = torch.nonzero((ii >= chunk.start) & (ii < chunk.stop)).flatten()
+    width = 7 + 6 * (int(slot[mine].max()) + 1 if len(mine) else 0)
+    coupling = own.new_zeros(n_rows, width, own.shape[2])
+    coupling[:, :7] = own[chunk]
+    colmap = torch.full((n_rows, width), 6 * n_kf + 1, dtype=torch.long, device=ii.device)
+    colmap[:, :6] = 6 * torch.arange(chunk.start, chunk.stop, device=ii.device)[:, None] + ar6
+    colmap[:, 6] = 6 * n_kf
+    if len(mine):
+        rows, cols = (ii[mine] - chunk.start)[:, None], 7 + 6 * slot[mine][:, None] + ar6
+        coupling[rows, cols] = target[mine]
+        colmap[rows, cols] = 6 * jj[mine][:, None] + ar6
+    return coupling, colmap
 
 
 def solve(eq: NormalEquations | Iterable[tuple[slice, NormalEquations]], ii: torch.Tensor, jj: torch.Tensor,
@@ -128,20 +166,20 @@ def solve(eq: NormalEquations | Iterable[tuple[slice, NormalEquations]], ii: tor
     n_pix = prior_h.shape[1]
     n_cam = 6 * n_kf + 1
     n_ext = n_cam + 1  # one dummy column for padded slots
-    ar6 = torch.arange(6, device=dev)
-    slot, max_deg = _edge_slots(ii, n_kf)
-    width = 7 + 6 * max_deg
+    slot, _ = _edge_slots(ii, n_kf)
+    elimination = keyframe_chunks(torch.bincount(ii, minlength=n_kf).tolist())
     expand = _expansion(dtype, dev)  # (13, 7): [xi_i, xi_j, f] from [xi_i, f]
     big_h = torch.zeros(n_ext * n_ext, dtype=dtype, device=dev)
     big_g = torch.zeros(n_ext, dtype=dtype, device=dev)
     pix_dtype = dtype if item is None else item[1].j_disp.dtype  # per-pixel sums stay in the Jacobians' dtype
     h_dd = torch.zeros(n_kf, n_pix, dtype=pix_dtype, device=dev)
     g_d = torch.zeros(n_kf, n_pix, dtype=pix_dtype, device=dev)
-    coupling = torch.zeros(n_kf, width, n_pix, dtype=pix_dtype, device=dev)
+    own = torch.zeros(n_kf, 7, n_pix, dtype=pix_dtype, device=dev)  # coupling of [xi_i, f], per source keyframe
+    target = torch.empty(len(ii), 6, n_pix, dtype=pix_dtype, device=dev)  # coupling of xi_j, per edge
     while item is not None:
         edges, part = item
-        _add_edges(part, ii[edges], jj[edges], slot[edges], n_kf, n_ext, expand=expand,
-                   big_h=big_h, big_g=big_g, h_dd=h_dd, g_d=g_d, coupling=coupling)
+        _add_edges(part, ii[edges], jj[edges], n_kf, n_ext, expand=expand, big_h=big_h, big_g=big_g, h_dd=h_dd,
+                   g_d=g_d, own=own, target=target[edges])
         # no reference to a summed slice is left while the next one is formed, so it is formed in the heap this
         # one frees (a for loop's variable would hold it meanwhile)
         item = part = None
@@ -149,26 +187,21 @@ def solve(eq: NormalEquations | Iterable[tuple[slice, NormalEquations]], ii: tor
     h_dd = h_dd + prior_h.to(pix_dtype)
     g_d = g_d + prior_g.to(pix_dtype)
     big_h = big_h.view(n_ext, n_ext)
-    colmap = torch.full((n_kf, width), n_cam, dtype=torch.long, device=dev)
-    colmap[:, :6] = 6 * torch.arange(n_kf, device=dev)[:, None] + ar6
-    colmap[:, 6] = 6 * n_kf
-    colmap[ii[:, None], 7 + 6 * slot[:, None] + ar6] = 6 * jj[:, None] + ar6
 
-    # Levenberg-Marquardt damping of the full system, then eliminate the disparities
+    # Levenberg-Marquardt damping of the full system, then eliminate the disparities a few keyframes at a time
     diag = torch.diagonal(big_h)
-    big_h = big_h + torch.diag(lm * diag + pose_eps)
+    schur = (big_h + torch.diag(lm * diag + pose_eps)).reshape(-1)
+    rhs = big_g.clone()
     inv_dd = 1 / (h_dd * (1 + lm) + disp_eps)
-    blocks = torch.empty(n_kf, width, width, dtype=dtype, device=dev)  # (N, D, D)
-    reduced_g = torch.empty(n_kf, width, dtype=dtype, device=dev)
-    for chunk in chunks(n_kf, KEYFRAME_CHUNK):
-        coupling64 = coupling[chunk].to(dtype)
+    for chunk in elimination:
+        coupling, colmap = _packed(chunk, own, target, ii, jj, slot, n_kf)
+        coupling64 = coupling.to(dtype)
         scaled = coupling64 * inv_dd[chunk].to(dtype)[:, None, :]
-        blocks[chunk] = torch.bmm(scaled, coupling64.transpose(1, 2))
-        reduced_g[chunk] = torch.bmm(scaled, g_d[chunk].to(dtype)[:, :, None])[..., 0]
-    schur = big_h.reshape(-1).index_add(0, (colmap[:, :, None] * n_ext + colmap[:, None, :]).reshape(-1),
-                                        -blocks.reshape(-1)).view(n_ext, n_ext)
-    rhs = big_g.index_add(0, colmap.reshape(-1), -reduced_g.reshape(-1))
-
+        schur.index_add_(0, (colmap[:, :, None] * n_ext + colmap[:, None, :]).reshape(-1),
+                         -torch.bmm(scaled, coupling64.transpose(1, 2)).reshape(-1))
+        rhs.index_add_(0, colmap.reshape(-1), -torch.bmm(scaled, g_d[chunk].to(dtype)[:, :, None]).reshape(-1))
+        del coupling64, scaled
+    schur = schur.view(n_ext, n_ext)
     s_ff = schur[free_cam][:, free_cam]
     chol, info = torch.linalg.cholesky_ex(s_ff)
     if int(info) != 0:
@@ -181,7 +214,8 @@ def solve(eq: NormalEquations | Iterable[tuple[slice, NormalEquations]], ii: tor
     delta_cam = torch.zeros(n_ext, dtype=dtype, device=dev)
     delta_cam[free_cam] = delta_free
     delta_d = torch.empty(n_kf, n_pix, dtype=dtype, device=dev)
-    for chunk in chunks(n_kf, KEYFRAME_CHUNK):
-        back = torch.bmm(delta_cam[colmap[chunk]][:, None], coupling[chunk].to(dtype))[:, 0]
+    for chunk in elimination:
+        coupling, colmap = _packed(chunk, own, target, ii, jj, slot, n_kf)
+        back = torch.bmm(delta_cam[colmap][:, None], coupling.to(dtype))[:, 0]
         delta_d[chunk] = inv_dd[chunk].to(dtype) * (g_d[chunk].to(dtype) - back)
     return Step(delta_cam[: 6 * n_kf].view(n_kf, 6), delta_cam[6 * n_kf], delta_d)

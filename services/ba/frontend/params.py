@@ -97,8 +97,8 @@ class FrontendParams:
     background_ba_every: int = 10  # a lossless stream's mapping, when idle, runs the end-of-stream BA over every
     # held keyframe once this many keyframes have joined since the last (0: never; Frontend.refine_globally)
     background_ba_s: float = 3.0  # ... within this many seconds (refinement.time_bound)
-    background_ba_keyframes: int = 0  # ... over the newest this many held keyframes (0: every one held): ba's
-    # memory peak is this BA, but over the newest 50 KITTI 07 lossless ended at 0.318 m against 0.306 (one run
+    background_ba_keyframes: int = 0  # ... over this many keyframes, the newest held ones and the landmarks they
+    # reach (0: keep_keyframes; Refinement._background_span): ba's memory peak is this BA, but over the newest 50 KITTI 07 lossless ended at 0.318 m against 0.306 (one run
     # each, the same focal; docs/BENCHMARKS.md)
     settled_global_ba_s: float = 2.0  # once background BAs ran, the end-of-stream BA stays within this many
     # seconds (0: global_ba_s alone bounds it): they gave every held keyframe its iterations

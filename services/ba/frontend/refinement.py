@@ -80,10 +80,11 @@ class Refinement:
     def refine_globally(self) -> Update:
         """A lossless stream's background refinement (mapping's spare time, or after a keyframe when ba sets the
         pace): once ``background_ba_every`` keyframes have joined since the last one, the end of stream's BA over
-        every keyframe held, bounded to ``background_ba_s``, so the map outside the window is refined during the
+        the held keyframes, bounded to ``background_ba_s``, so the map outside the window is refined during the
         stream and the end of stream's own BA only settles it (bounded to ``settled_global_ba_s`` once one ran).
-        With ``background_ba_keyframes`` set, the BA spans the newest that many held keyframes only (its memory
-        and time bounded by it; the oldest of them is its gauge). Every keyframe's pose and the maps of those it
+        It spans the newest held keyframes and the landmarks they reach, ``background_ba_keyframes`` (0:
+        ``keep_keyframes``) of them together (:meth:`_background_span`; the oldest held one is its gauge), so its
+        memory and time are bounded by that. Every keyframe's pose and the maps of those it
         spanned in the update (empty when none is due, or the BA was refused). A live stream's mapping has no such
         time: a BA over 100 keyframes takes seconds, and keyframes would queue behind it."""
         g, p = self.graph, self.params
@@ -92,13 +93,24 @@ class Refinement:
             return Update()
         self._since_global = 0
         self._background_bas += 1
-        recent = g.recent()
-        keyframes = recent[-p.background_ba_keyframes:] if p.background_ba_keyframes > 0 else recent
+        keyframes = self._background_span()
         began = time.monotonic()
         accepted = self._global_ba(p.background_ba_s, keyframes)
         logger.info("background BA", extra={"keyframes": len(keyframes), "accepted": accepted,
                                             "seconds": round(time.monotonic() - began, 2)})
         return self._update(keyframes) if accepted else Update()
+
+    def _background_span(self) -> list[int]:
+        """The held keyframes a background BA spans: the newest ``background_ba_keyframes`` (0: ``keep_keyframes``),
+        the landmarks their loop edges reach counted in. ba's memory high-water is this BA's (~0.4 MB per edge on a
+        48x64 grid, held by the allocator after it), so once a camera comes round again the landmarks take the
+        place of the oldest held keyframes instead of adding to it: 10,000 frames round a room went 1,056 ->
+        1,271 MB after their first 1,000 frames as 15 landmarks joined (docs/BENCHMARKS.md)."""
+        g, p = self.graph, self.params
+        budget = p.background_ba_keyframes if p.background_ba_keyframes > 0 else p.keep_keyframes
+        recent = g.recent()
+        linked = len(g.linked_landmarks(recent[-budget:]))
+        return recent[-max(budget - linked, p.graph.window):]
 
     def _settle_span(self) -> list[int] | None:
         """The keyframes the end-of-stream BA spans (None: every held one). Once background BAs ran, those that

@@ -12,7 +12,7 @@ from typing import Callable
 import numpy as np
 
 from services.common.pca_codes import convert_sums
-from services.mapstore.core.fusion import Contribution, FrozenSums
+from services.mapstore.core.fusion import RECODE_ROWS, Contribution, FrozenSums
 from services.mapstore.core.snapping import contains, snap_to_surface
 
 log = logging.getLogger(__name__)
@@ -127,8 +127,11 @@ class Folding:
             return
         while len(versions) + (self.code_version in self._frozen) > self.frozen_versions and versions:
             old = versions.pop(0)
-            part = self._frozen.pop(old).contribution()
-            codes = convert_sums(part.codes, part.weight, self._code_maps[old]).astype(np.float32)
+            part, cmap = self._frozen.pop(old).contribution(), self._code_maps[old]
+            codes = np.empty((part.keys.size, cmap.matrix.shape[0]), np.float32)
+            for start in range(0, part.keys.size, RECODE_ROWS):  # float64 sums of a few rows at a time
+                rows = slice(start, start + RECODE_ROWS)
+                codes[rows] = convert_sums(part.codes[rows], part.weight[rows], cmap)
             self._frozen.setdefault(self.code_version, FrozenSums()).add(dataclasses.replace(part, codes=codes))
             log.info("frozen sums of PCA version %d carried in version %d", old, self.code_version)
 

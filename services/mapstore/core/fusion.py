@@ -102,24 +102,42 @@ def merge_contributions(parts: list[Contribution]) -> Contribution:
     with_codes = parts[0].codes is not None
     if any((p.codes is not None) != with_codes for p in parts):
         raise ValueError("cannot merge contributions with and without codes")
-    joined = (np.concatenate([getattr(p, name) for p in parts]) if with_codes or name != "codes" else None
-              for name in (f.name for f in fields(Contribution)))
-    return sum_by_key(Contribution(*joined))
+    return _summed(parts)
 
 
 def sum_by_key(c: Contribution) -> Contribution:
     """``c`` with the rows that share a key summed into one (keys ascending; sums added in float64)."""
-    order = np.argsort(c.keys, kind="stable")
-    sk = c.keys[order]
+    return _summed([c])
+
+
+SUM_COLUMNS = 8  # columns of a field sorted and summed at once: a whole field's sorted float64 copy was 5x the
+# result's memory at the merge of a 70,000-voxel folded map (66 MB for 13 MB), the mapstore's high-water as it grew
+RECODE_ROWS = 16384  # rows of a contribution converted into a new PCA version at once (VoxelGrid.recode)
+
+
+def _summed(parts: list[Contribution]) -> Contribution:
+    """The rows of ``parts`` taken together, those that share a key summed into one (keys ascending), a few
+    columns at a time; each sum accumulates in float64 (int64 for counts) in row order."""
+    keys = parts[0].keys if len(parts) == 1 else np.concatenate([p.keys for p in parts])
+    order = np.argsort(keys, kind="stable")
+    sk = keys[order]
     starts = np.flatnonzero(np.r_[True, sk[1:] != sk[:-1]]) if sk.size else np.zeros(0, np.int64)
 
-    def total(values: np.ndarray | None) -> np.ndarray | None:
-        if values is None or not sk.size:
-            return values
-        wide = values[order] if values.dtype == np.int64 else values[order].astype(np.float64)
-        return np.add.reduceat(wide, starts, axis=0).astype(values.dtype)
+    def total(name: str) -> np.ndarray | None:
+        arrays = [getattr(p, name) for p in parts]
+        if arrays[0] is None or not sk.size:
+            return arrays[0] if len(arrays) == 1 or arrays[0] is None else np.concatenate(arrays)
+        first = arrays[0]
+        accumulate = np.int64 if first.dtype == np.int64 else np.float64
+        out = np.empty((starts.size, *first.shape[1:]), first.dtype)
+        width = first.shape[1] if first.ndim == 2 else 1
+        for col in range(0, width, SUM_COLUMNS):
+            cols = slice(col, col + SUM_COLUMNS) if first.ndim == 2 else slice(None)
+            rows = first[..., cols] if len(arrays) == 1 else np.concatenate([a[..., cols] for a in arrays])
+            out[..., cols] = np.add.reduceat(rows[order], starts, axis=0, dtype=accumulate)
+        return out
 
-    return Contribution(sk[starts], total(c.weight), total(c.xyz), total(c.codes), total(c.colours), total(c.count))
+    return Contribution(sk[starts], *(total(f.name) for f in fields(Contribution) if f.name != "keys"))
 
 
 class FrozenSums:
@@ -221,7 +239,7 @@ class VoxelGrid:
 
     def _new_slot(self) -> int:
         if self._used == self._keys.shape[0]:
-            self._alloc(2 * self._keys.shape[0])
+            self._alloc(max(self._keys.shape[0] * 3 // 2, 16))  # old and new coexist while copying: 2.5x, not 3x
         self._used += 1
         return self._used - 1
 
@@ -266,13 +284,24 @@ class VoxelGrid:
 
     def recode(self, parts: list[tuple[Contribution, CodeMap | None]], code_dim: int) -> None:
         """Re-sum every voxel's codes in a new version (``code_dim`` = its K) from all the contributions with
-        codes now applied, each with the map from its own version; weights, positions and colours are untouched."""
+        codes now applied, each with the map from its own version; weights, positions and colours are untouched.
+        A few columns and rows at a time, into the grid's own code array where K is unchanged: the whole grid's
+        float64 codes and each part's converted sums at once were several times the grid's codes, at every PCA
+        refit of a growing map (the mapstore's high-water)."""
+        coded = [(self._slots(c.keys), c, cmap) for c, cmap in parts if c.codes is not None]
+        if self._codes.shape[1] != code_dim:
+            self._codes = None  # freed before its successor is allocated
+            self._codes = np.zeros((self._keys.shape[0], code_dim), np.float32)
         self.code_dim = code_dim
-        codes = np.zeros((self._keys.shape[0], code_dim), np.float64)
-        for c, cmap in parts:
-            if c.codes is not None:
-                codes[self._slots(c.keys)] += self._grid_codes(c, cmap)
-        self._codes = codes.astype(np.float32)
+        for col in range(0, code_dim, SUM_COLUMNS):
+            cols = slice(col, min(col + SUM_COLUMNS, code_dim))
+            block = np.zeros((self._keys.shape[0], cols.stop - cols.start), np.float64)
+            for slots, c, cmap in coded:
+                for start in range(0, c.keys.size, RECODE_ROWS):
+                    rows = slice(start, start + RECODE_ROWS)
+                    block[slots[rows]] += (c.codes[rows, cols] if cmap is None or cmap.is_identity
+                                           else convert_sums(c.codes[rows], c.weight[rows], cmap, cols))
+            self._codes[:, cols] = block
 
     def __len__(self) -> int:
         return len(self._slot_of)
