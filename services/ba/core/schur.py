@@ -65,14 +65,14 @@ def chunks(n: int, size: int = CHUNK) -> list[slice]:
     return [slice(start, min(start + size, n)) for start in range(0, n, size)]
 
 
-def _edge_slots(ii: torch.Tensor, n_kf: int) -> tuple[torch.Tensor, int]:
-    """Rank of each edge among the edges with the same source, and the maximum out-degree."""
+def _edge_slots(ii: torch.Tensor, n_kf: int) -> tuple[torch.Tensor, list[int]]:
+    """Rank of each edge among the edges with the same source, and each keyframe's out-degree."""
     counts = torch.bincount(ii, minlength=n_kf)
     order = torch.argsort(ii, stable=True)
     starts = torch.cumsum(counts, 0) - counts
     slot = torch.empty_like(ii)
     slot[order] = torch.arange(len(ii), device=ii.device) - starts[ii[order]]
-    return slot, int(counts.max().item()) if len(ii) else 0
+    return slot, counts.tolist()
 
 
 def _add_edges(eq: NormalEquations, ii: torch.Tensor, jj: torch.Tensor, n_kf: int, n_ext: int, *,
@@ -166,8 +166,9 @@ def solve(eq: NormalEquations | Iterable[tuple[slice, NormalEquations]], ii: tor
     n_pix = prior_h.shape[1]
     n_cam = 6 * n_kf + 1
     n_ext = n_cam + 1  # one dummy column for padded slots
-    slot, _ = _edge_slots(ii, n_kf)
-    elimination = keyframe_chunks(torch.bincount(ii, minlength=n_kf).tolist())
+    slot, out_degree = _edge_slots(ii, n_kf)
+    elimination = keyframe_chunks(out_degree)  # packed twice per chunk (here
+    # and for the back-substitution): kept, every chunk's block at once would be the padded coupling again
     expand = _expansion(dtype, dev)  # (13, 7): [xi_i, xi_j, f] from [xi_i, f]
     big_h = torch.zeros(n_ext * n_ext, dtype=dtype, device=dev)
     big_g = torch.zeros(n_ext, dtype=dtype, device=dev)

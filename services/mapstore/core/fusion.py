@@ -125,8 +125,10 @@ def _summed(parts: list[Contribution]) -> Contribution:
 
     def total(name: str) -> np.ndarray | None:
         arrays = [getattr(p, name) for p in parts]
-        if arrays[0] is None or not sk.size:
-            return arrays[0] if len(arrays) == 1 or arrays[0] is None else np.concatenate(arrays)
+        if arrays[0] is None:
+            return None
+        if not sk.size:
+            return np.concatenate(arrays)
         first = arrays[0]
         accumulate = np.int64 if first.dtype == np.int64 else np.float64
         out = np.empty((starts.size, *first.shape[1:]), first.dtype)
@@ -288,7 +290,8 @@ class VoxelGrid:
         A few columns and rows at a time, into the grid's own code array where K is unchanged: the whole grid's
         float64 codes and each part's converted sums at once were several times the grid's codes, at every PCA
         refit of a growing map (the mapstore's high-water)."""
-        coded = [(self._slots(c.keys), c, cmap) for c, cmap in parts if c.codes is not None]
+        coded = [(self._slots(c.keys), c, None if cmap is None or cmap.is_identity else cmap)
+                 for c, cmap in parts if c.codes is not None]
         if self._codes.shape[1] != code_dim:
             self._codes = None  # freed before its successor is allocated
             self._codes = np.zeros((self._keys.shape[0], code_dim), np.float32)
@@ -299,7 +302,7 @@ class VoxelGrid:
             for slots, c, cmap in coded:
                 for start in range(0, c.keys.size, RECODE_ROWS):
                     rows = slice(start, start + RECODE_ROWS)
-                    block[slots[rows]] += (c.codes[rows, cols] if cmap is None or cmap.is_identity
+                    block[slots[rows]] += (c.codes[rows, cols] if cmap is None
                                            else convert_sums(c.codes[rows], c.weight[rows], cmap, cols))
             self._codes[:, cols] = block
 
