@@ -180,13 +180,14 @@ def test_spare_time_runs_the_global_ba_once_enough_keyframes_joined_and_never_fo
     assert params.global_ba_s == 0 and live._end_bound_s() == 0  # unbounded where no background BA ran
 
 
-def _streamed_with_background_bas_over(keyframes: int):
-    """A short synthetic stream through a frontend whose background BAs span ``keyframes`` (3-keyframe window)."""
+def _streamed_with_background_bas_over(keyframes: int, edges: int = 0):
+    """A short synthetic stream through a frontend whose background BAs span ``keyframes`` and ``edges``
+    (3-keyframe window)."""
     from services.ba.frontend.params import GraphParams
 
     world, msgs = synth_stream(n_frames=60, rendered=27, every=3, width=256)
     params = FrontendParams(graph=GraphParams(window=3), background_ba_every=8, background_ba_keyframes=keyframes,
-                            focal_after=1000, global_ba=BAParams(iterations=3))
+                            background_ba_edges=edges, focal_after=1000, global_ba=BAParams(iterations=3))
     fe = Frontend(params)
     for msg in msgs[:-1]:
         if isinstance(msg, Keyframe):
@@ -237,6 +238,27 @@ def test_landmarks_a_background_ba_reaches_take_the_place_of_the_oldest_held_key
     for k in range(len(g)):
         moved = float((g.poses[k] - poses[k]).abs().max())
         assert (moved == 0) == (g.seqs[k] not in newest[1:]), (k, moved)  # the gauge and all before it stay
+
+
+def test_loop_edges_a_background_ba_would_add_take_the_place_of_the_oldest_keyframes_edges():
+    """``background_ba_edges`` bounds the background BA's edges too (each costs memory). At 18, those of 5
+    keyframes in a row at radius 3, two loop edges between the newest and the fifth newest make 20, so the fifth
+    leaves the span (the 4 newest: 12 edges, the loop edges out with it); at 20, and unbounded (0, the default),
+    all five stay; the keyframes the span leaves out keep their poses."""
+    for edges, spanned in ((18, 4), (20, 5), (0, 5)):
+        world, fe = _streamed_with_background_bas_over(5, edges)
+        g = fe.graph
+        assert len(g) >= 7
+        g.proximity |= {(g.seqs[-1], g.seqs[-5]), (g.seqs[-5], g.seqs[-1])}
+        runs = []
+        g.run = lambda window, pairs, *args, run=g.run: runs.append(([g.seqs[k] for k in window], len(pairs))) or run(
+            window, pairs, *args)
+        poses = [p.clone() for p in g.poses]
+        update = fe.refine_globally()
+        assert runs == [(g.seqs[-spanned:], 20 if spanned == 5 else 12)], edges
+        assert update.graph is not None and update.graph.updated_seqs.tolist() == g.seqs[-spanned:]
+        for k in range(len(g) - spanned + 1):  # the gauge and every keyframe before it stay
+            assert float((g.poses[k] - poses[k]).abs().max()) == 0, (edges, k)
 
 
 def test_end_of_stream_solves_every_measured_frame_again_with_the_flow_it_has():

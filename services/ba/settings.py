@@ -111,6 +111,9 @@ class BaSettings(BASettings):
     background_ba_keyframes: int = FrontendParams.background_ba_keyframes
     """... over this many keyframes, the newest held ones and the landmarks they reach counted together (0:
     ``keep_keyframes``): the BA's memory and time grow with its keyframes' edges."""
+    background_ba_edges: int = FrontendParams.background_ba_edges
+    """... and at most this many edges, the oldest keyframes left out until it fits (0: no bound but the
+    keyframes'): loop edges cost memory like any other (588 is what 100 keyframes in a row have at radius 3)."""
     background_ba_when_busy: bool = True
     """Lossless streams: the global BA also runs when it is due and keyframes wait (ba sets a lossless stream's
     pace: with no spare time it would never run, and the end of stream would do all of it)."""
@@ -234,7 +237,7 @@ class BaSettings(BASettings):
             live_max_deferred=self.live_max_deferred, final_align_s=self.final_align_s,
             live_window=self.live_window, live_flow_preset=self.live_flow_preset,
             live_calibration=self.live_calibration, background_ba_every=self.background_ba_every,
-            background_ba_keyframes=self.background_ba_keyframes,
+            background_ba_keyframes=self.background_ba_keyframes, background_ba_edges=self.background_ba_edges,
             background_ba_s=self.background_ba_s, settled_global_ba_s=self.settled_global_ba_s,
             settle_all_keyframes=self.settle_all_keyframes,
             global_ba_s=self.global_ba_s, relocalise=self.relocalise_params())

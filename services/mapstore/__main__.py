@@ -24,7 +24,7 @@ def _body(bus, stop) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return service_main("mapstore", _body, handles_frames=True, blas_threads=1)
+    return service_main("mapstore", _body, holds_map=True, blas_threads=1)
 
 
 if __name__ == "__main__":

@@ -83,9 +83,9 @@ class Refinement:
         the held keyframes, bounded to ``background_ba_s``, so the map outside the window is refined during the
         stream and the end of stream's own BA only settles it (bounded to ``settled_global_ba_s`` once one ran).
         It spans the newest held keyframes and the landmarks they reach, ``background_ba_keyframes`` (0:
-        ``keep_keyframes``) of them together (:meth:`_background_span`; the oldest held one is its gauge), so its
-        memory and time are bounded by that. Every keyframe's pose and the maps of those it
-        spanned in the update (empty when none is due, or the BA was refused). A live stream's mapping has no such
+        ``keep_keyframes``) of them together, and ``background_ba_edges`` edges at most when set
+        (:meth:`_background_span`; the oldest held one is its gauge), so its memory and time are bounded by that. Every keyframe's pose and
+        the maps of those it spanned in the update (empty when none is due, or the BA was refused). A live stream's mapping has no such
         time: a BA over 100 keyframes takes seconds, and keyframes would queue behind it."""
         g, p = self.graph, self.params
         if (g is None or not self.initialised or self._live or p.background_ba_every <= 0
@@ -96,7 +96,8 @@ class Refinement:
         keyframes = self._background_span()
         began = time.monotonic()
         accepted = self._global_ba(p.background_ba_s, keyframes)
-        logger.info("background BA", extra={"keyframes": len(keyframes), "accepted": accepted,
+        logger.info("background BA", extra={"keyframes": len(keyframes), "edges": self._edge_count(keyframes),
+                                            "accepted": accepted,
                                             "seconds": round(time.monotonic() - began, 2)})
         return self._update(keyframes) if accepted else Update()
 
@@ -105,12 +106,30 @@ class Refinement:
         the landmarks their loop edges reach counted in. ba's memory high-water is this BA's (~0.4 MB per edge on a
         48x64 grid, held by the allocator after it), so once a camera comes round again the landmarks take the
         place of the oldest held keyframes instead of adding to it: 10,000 frames round a room went 1,056 ->
-        1,271 MB after their first 1,000 frames as 15 landmarks joined (docs/BENCHMARKS.md)."""
+        1,271 MB after their first 1,000 frames as 15 landmarks joined (docs/BENCHMARKS.md). Its edges can be
+        bounded the same way, by ``background_ba_edges`` (0: not bounded)."""
         g, p = self.graph, self.params
         budget = p.background_ba_keyframes if p.background_ba_keyframes > 0 else p.keep_keyframes
         recent = g.recent()
         linked = len(g.linked_landmarks(recent[-budget:]))
-        return recent[-max(budget - linked, p.graph.window):]
+        span = recent[-max(budget - linked, p.graph.window):]
+        if p.background_ba_edges <= 0:
+            return span
+        # and its edges: a revisit's loop edges add to a span's edges as its landmarks add to its keyframes. The
+        # oldest keyframes leave until it fits (fewer keyframes never make more edges: a search over the start)
+        first, last = 0, max(0, len(span) - p.graph.window)
+        while first < last:
+            mid = (first + last) // 2
+            if self._edge_count(span[mid:]) <= p.background_ba_edges:
+                last = mid
+            else:
+                first = mid + 1
+        return span[first:]
+
+    def _edge_count(self, keyframes: list[int]) -> int:
+        """Edges of the global BA over ``keyframes`` (:meth:`_global_ba`: the landmarks they reach joined)."""
+        g = self.graph
+        return len(g.pairs(g.linked_landmarks(keyframes) + keyframes, self.params.graph.global_radius))
 
     def _settle_span(self) -> list[int] | None:
         """The keyframes the end-of-stream BA spans (None: every held one). Once background BAs ran, those that
