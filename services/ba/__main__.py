@@ -9,6 +9,7 @@ from services.ba.checkpoint import pending
 from services.ba.service import build_state, run
 from services.ba.settings import BaSettings
 from services.ba.tracking_process import prewarm
+from services.common.lifecycle import tune_malloc_for_tensors
 from services.common.service_main import service_main
 from services.common.streams import serve
 
@@ -26,7 +27,7 @@ def _body(bus, stop) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return service_main("ba", _body, handles_tensors=True)
+    return service_main("ba", _body, tune_malloc_for_tensors)
 
 
 if __name__ == "__main__":

@@ -30,17 +30,22 @@ M_MMAP_MAX = -4
 M_ARENA_MAX = -8
 
 
-def tune_malloc_for_frames() -> None:
-    """glibc: serve ~1 MB message buffers from the already-mapped heap instead of fresh mmap pages, whose page
-    faults cost ~2 ms per raw 640×480 frame encode (→ ~0.1 ms; bench/bus.py --malloc tuned). Each process may
-    keep up to 128 MiB of freed memory. Called once by each service's main, never at import."""
+def _mallopt(*settings: tuple[int, int]) -> None:
+    """glibc's ``mallopt(param, value)`` for each pair; nothing where the C library is not glibc."""
     try:
         libc = ctypes.CDLL(None)
     except OSError:
         return
     if hasattr(libc, "mallopt"):  # glibc only
-        libc.mallopt(M_MMAP_THRESHOLD, 32 << 20)
-        libc.mallopt(M_TRIM_THRESHOLD, 128 << 20)
+        for param, value in settings:
+            libc.mallopt(param, value)
+
+
+def tune_malloc_for_frames() -> None:
+    """glibc: serve ~1 MB message buffers from the already-mapped heap instead of fresh mmap pages, whose page
+    faults cost ~2 ms per raw 640×480 frame encode (→ ~0.1 ms; bench/bus.py --malloc tuned). Each process may
+    keep up to 128 MiB of freed memory. Called once by each service's main, never at import."""
+    _mallopt((M_MMAP_THRESHOLD, 32 << 20), (M_TRIM_THRESHOLD, 128 << 20))
 
 
 def tune_malloc_for_maps(mmap_kib: int = 256) -> None:
@@ -52,13 +57,7 @@ def tune_malloc_for_maps(mmap_kib: int = 256) -> None:
     from frame 2,000 to 3,000 (tracemalloc) while its arenas grew by 40 MB. With this the mapstore's RSS
     high-water is ~26 MB lower at the same frame (docs/BENCHMARKS.md). A fixed threshold also stops glibc's rise.
     Called by a service's main, never at import."""
-    try:
-        libc = ctypes.CDLL(None)
-    except OSError:
-        return
-    if hasattr(libc, "mallopt"):  # glibc only
-        libc.mallopt(M_MMAP_THRESHOLD, mmap_kib << 10)
-        libc.mallopt(M_ARENA_MAX, 2)
+    _mallopt((M_MMAP_THRESHOLD, mmap_kib << 10), (M_ARENA_MAX, 2))
 
 
 def tune_malloc_for_tensors(keep_mib: int = 512) -> None:
@@ -69,17 +68,9 @@ def tune_malloc_for_tensors(keep_mib: int = 512) -> None:
     sample) and keeps up to ``keep_mib`` of freed heap: a 25-keyframe window's iteration frees ~300-500 MB, so
     512 keeps its speed (bench/ba.py: 0.099 s per iteration against 0.090 at 1024 and 0.206 at 256) while the
     process keeps 0.5 GB less than at 1024. Called by a service's main or a bench, never at import."""
-    try:
-        libc = ctypes.CDLL(None)
-    except OSError:
-        return
-    if hasattr(libc, "mallopt"):  # glibc only
-        libc.mallopt(M_MMAP_MAX, 0)
-        libc.mallopt(M_TRIM_THRESHOLD, keep_mib << 20)
-        # every thread that allocates gets an arena of its own, each keeping its own freed heap: ba's tracking,
-        # mapping and Zenoh threads held ~1.1 GB at 1,500 synthetic frames with the default (8 x cores), 0.95 GB
-        # with two
-        libc.mallopt(M_ARENA_MAX, 2)
+    # every thread that allocates gets an arena of its own, each keeping its own freed heap: ba's tracking,
+    # mapping and Zenoh threads held ~1.1 GB at 1,500 synthetic frames with the default (8 x cores), 0.95 GB with two
+    _mallopt((M_MMAP_MAX, 0), (M_TRIM_THRESHOLD, keep_mib << 20), (M_ARENA_MAX, 2))
 
 
 def release_free_memory() -> bool:

@@ -14,8 +14,7 @@ from . import metrics
 from .bus import Bus
 from .config import BusSettings, MetricsSettings
 from .errors import KmVipeError
-from .lifecycle import (limit_blas_threads, stop_on_signals, tune_malloc_for_frames, tune_malloc_for_maps,
-                        tune_malloc_for_tensors)
+from .lifecycle import limit_blas_threads, stop_on_signals
 from .logs import setup_logging
 
 log = logging.getLogger(__name__)
@@ -39,14 +38,14 @@ class StreamField(logging.Filter):
         return True
 
 
-def service_main(name: str, body: ServiceBody, handles_frames: bool = False, handles_tensors: bool = False,
-                 holds_map: bool = False, blas_threads: int | None = None) -> int:
+def service_main(name: str, body: ServiceBody, tune_malloc: Callable[[], None] | None = None,
+                 blas_threads: int | None = None) -> int:
     """Run ``body(bus, stop)`` as service ``name``; returns the process exit code (body's int, else 0).
 
     Bad settings and known errors end the process with one message and exit code 2, never a traceback.
-    ``handles_frames`` tunes the allocator for frame-sized buffers (see ``tune_malloc_for_frames``),
-    ``handles_tensors`` for large tensor temporaries (``tune_malloc_for_tensors``; it wins when both are set),
-    ``holds_map`` for a long-lived map changed in place (``tune_malloc_for_maps``).
+    ``tune_malloc`` tunes the allocator for what the service holds, one of :mod:`services.common.lifecycle`'s
+    (``tune_malloc_for_frames``: frame-sized buffers; ``_for_tensors``: large tensor temporaries; ``_for_maps``:
+    a long-lived map changed in place); None leaves glibc's defaults.
     ``blas_threads`` caps numpy's BLAS pool (``limit_blas_threads``; None leaves it).
     With ``KMVIPE_METRICS_PORT`` set, ``/metrics``, ``/livez`` and ``/readyz`` are served while the bus is open
     (:mod:`services.common.metrics`).
@@ -59,12 +58,8 @@ def service_main(name: str, body: ServiceBody, handles_frames: bool = False, han
     for handler in logging.getLogger().handlers:
         handler.addFilter(StreamField())
     stop = stop_on_signals()
-    if handles_frames:
-        tune_malloc_for_frames()
-    if handles_tensors:
-        tune_malloc_for_tensors()
-    if holds_map:
-        tune_malloc_for_maps()
+    if tune_malloc is not None:
+        tune_malloc()
     if blas_threads is not None:
         limit_blas_threads(blas_threads)
     try:

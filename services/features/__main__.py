@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import sys
 
+from ..common.lifecycle import tune_malloc_for_frames
 from ..common.service_main import service_main
 from ..common.streams import serve
 from .config import FeaturesSettings
@@ -26,7 +27,7 @@ def main(argv: list[str] | None = None) -> int:
     # the PCA's matmuls are numpy's since features runs without torch: one BLAS thread, as the mapstore, so that an
     # idle pool's spinning threads take no CPU from tracking and mapping (KITTI keyframes: 417 ms described and
     # coded with one thread, 442 with two)
-    return service_main("features", _body, handles_frames=True, blas_threads=1)
+    return service_main("features", _body, tune_malloc_for_frames, blas_threads=1)
 
 
 if __name__ == "__main__":

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import sys
 
+from ..common.lifecycle import tune_malloc_for_frames
 from ..common.service_main import service_main
 from .config import IngestSettings
 from .service import run
@@ -14,7 +15,7 @@ def _body(bus, stop) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return service_main("ingest", _body, handles_frames=True)
+    return service_main("ingest", _body, tune_malloc_for_frames)
 
 
 if __name__ == "__main__":
