@@ -27,7 +27,7 @@ Usage:
   python bench/live.py --synth 360
   python bench/live.py --kitti --lossless
   python bench/live.py --frames 10000                    # long: the memory check of issue 12
-  python bench/live.py --frames 1500 --timeout 60        # stop after a minute (SIGINT), report what was measured
+  python bench/live.py --frames 1500 --timeout 60        # stop after a minute (SIGTERM), report what was measured
 """
 from __future__ import annotations
 
@@ -107,8 +107,10 @@ def run_kmvipe(run: Run, out_root: Path, timeout_s: float | None) -> tuple[dict,
             time.sleep(1.0)
             loads.append(os.getloadavg()[0])
             if timeout_s and not stopped and time.monotonic() - began > timeout_s:
-                print(f"[{run.label}] --timeout {timeout_s:.0f} s: stopping the run (SIGINT)", flush=True)
-                proc.send_signal(signal.SIGINT)
+                # SIGTERM, not SIGINT: a shell starts background jobs with SIGINT ignored, the ignore is inherited,
+                # and kmvipe keeps an ignored signal ignored (as nohup expects), so SIGINT would not stop it
+                print(f"[{run.label}] --timeout {timeout_s:.0f} s: stopping the run (SIGTERM)", flush=True)
+                proc.send_signal(signal.SIGTERM)
                 stopped = True
         relay.join(timeout=5)
     wall = time.monotonic() - began
@@ -268,7 +270,7 @@ def main() -> int:
     parser.add_argument("--frames", type=int, metavar="N", help="memory check: lossless synth:frames=N,256x192")
     parser.add_argument("--oracle", action="store_true",
                         help="synthetic sources: the synth-oracle backbone instead of DINO (no model, a test double)")
-    parser.add_argument("--timeout", type=float, metavar="S", help="stop each run after S seconds (SIGINT)")
+    parser.add_argument("--timeout", type=float, metavar="S", help="stop each run after S seconds (SIGTERM)")
     parser.add_argument("--out", type=Path, default=Path("/tmp/kmvipe-live"), help="run outputs (one folder per run)")
     parser.add_argument("--cache", type=Path, default=Path("/tmp"), help="where the rendered synthetic folder goes")
     parser.add_argument("--json", type=Path, help="also write every run's summary and measurements here")
