@@ -98,8 +98,8 @@ class FrontendParams:
     # held keyframe once this many keyframes have joined since the last (0: never; Frontend.refine_globally)
     background_ba_s: float = 3.0  # ... within this many seconds (refinement.time_bound)
     background_ba_keyframes: int = 0  # ... over this many keyframes, the newest held ones and the landmarks they
-    # reach (0: keep_keyframes; Refinement._background_span): ba's memory peak is this BA, but over the newest 50 KITTI 07 lossless ended at 0.318 m against 0.306 (one run
-    # each, the same focal; docs/BENCHMARKS.md)
+    # reach (0: keep_keyframes; Refinement._background_span): ba's memory peak is this BA, but over the newest 50
+    # KITTI 07 lossless ended at 0.318 m against 0.306 (one run each, the same focal; docs/BENCHMARKS.md)
     background_ba_edges: int = 0  # ... and at most this many edges (0: no bound but the keyframes';
     # Refinement._background_span): its memory grows with its edges (~0.4 MB each). Off by default: at 588 (100
     # keyframes in a row at radius 3) a 10,000-frame orbit's live poses were 1.70 m off over 5,389 frames against

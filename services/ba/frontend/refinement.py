@@ -84,9 +84,10 @@ class Refinement:
         stream and the end of stream's own BA only settles it (bounded to ``settled_global_ba_s`` once one ran).
         It spans the newest held keyframes and the landmarks they reach, ``background_ba_keyframes`` (0:
         ``keep_keyframes``) of them together, and ``background_ba_edges`` edges at most when set
-        (:meth:`_background_span`; the oldest held one is its gauge), so its memory and time are bounded by that. Every keyframe's pose and
-        the maps of those it spanned in the update (empty when none is due, or the BA was refused). A live stream's mapping has no such
-        time: a BA over 100 keyframes takes seconds, and keyframes would queue behind it."""
+        (:meth:`_background_span`; the oldest held one is its gauge), so its memory and time are bounded by that.
+        Every keyframe's pose and the maps of those it spanned in the update (empty when none is due, or the BA was
+        refused). A live stream's mapping has no such time: a BA over 100 keyframes takes seconds, and keyframes
+        would queue behind it."""
         g, p = self.graph, self.params
         if (g is None or not self.initialised or self._live or p.background_ba_every <= 0
                 or self._since_global < p.background_ba_every or len(g) <= p.graph.window):
