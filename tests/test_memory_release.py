@@ -1,6 +1,6 @@
 """Freed heap goes back to the kernel when a service asks (services/common/lifecycle.py): with the allocator tuned
-the way ba and features tune it, a burst of freed arrays stays resident until ``release_free_memory``; the way the
-mapstore tunes it, large arrays leave as they are freed; and ``MemoryRelease`` asks at most once per period."""
+the way ba tunes it, a burst of freed arrays stays resident until ``release_free_memory``; and ``MemoryRelease``
+asks at most once per period."""
 from __future__ import annotations
 
 import ctypes
@@ -77,43 +77,3 @@ def test_period_zero_never_releases(monkeypatch):
         assert not release.maybe()
     release.now()  # an explicit release too (a stream's end): releases are off
     assert not calls
-
-
-MAP_PROBE = textwrap.dedent("""
-    import json, sys
-    import numpy as np
-    from services.common.lifecycle import tune_malloc_for_maps
-
-    def rss_mb():
-        return int(open("/proc/self/statm").read().split()[1]) * 4096 / 2**20
-
-    if sys.argv[1] == "maps":
-        tune_malloc_for_maps()  # as the mapstore
-    big = np.ones(16 * 2**20 // 8)  # one large array freed: glibc's own threshold rises to its size after it
-    del big
-    before = rss_mb()
-    burst, keep = [], []
-    for _ in range(200):  # 200 MiB of 1 MiB arrays, small survivors between them: a map re-fused in place
-        burst.append(np.ones(2**20 // 8))
-        keep.append(bytes(4096))  # from malloc (past pymalloc's 512 bytes), between the arrays
-    during = rss_mb()
-    del burst
-    print(json.dumps(dict(before=before, during=during, freed=rss_mb())))
-""")
-
-
-@glibc
-def test_a_map_holders_freed_arrays_leave_at_once():
-    """The mapstore's allocator (``tune_malloc_for_maps``): arrays of 256 KiB and more get pages of their own and
-    give them back as they are freed, even between survivors and after a large free, which raises glibc's own
-    threshold (the control: the same arrays from the default allocator stay resident)."""
-    def probe(mode: str) -> dict:
-        out = subprocess.run([sys.executable, "-c", MAP_PROBE, mode], capture_output=True, text=True, timeout=120,
-                             check=True)
-        return __import__("json").loads(out.stdout.strip().splitlines()[-1])
-
-    for mode, kept in (("maps", False), ("default", True)):
-        rss = probe(mode)
-        burst = rss["during"] - rss["before"]
-        assert burst > 180, (mode, rss)  # the arrays were really resident
-        assert (rss["freed"] - rss["before"] > 0.8 * burst) == kept, (mode, rss)

@@ -48,18 +48,6 @@ def tune_malloc_for_frames() -> None:
     _mallopt((M_MMAP_THRESHOLD, 32 << 20), (M_TRIM_THRESHOLD, 128 << 20))
 
 
-def tune_malloc_for_maps(mmap_kib: int = 256) -> None:
-    """glibc: arrays of ``mmap_kib`` and more get pages of their own, handed back when they are freed, and
-    two arenas at most. A process that holds a map which changes in place (the mapstore: contributions re-fused,
-    carving views, frozen sums merged, a PCA refit's re-sum) frees and allocates arrays of every size for as
-    long as the stream runs. From the heap, with glibc's threshold that rises after every large free, their
-    holes outlived them: on a lossless synthetic orbit the memory the mapstore's Python held stayed at ~210 MB
-    from frame 2,000 to 3,000 (tracemalloc) while its arenas grew by 40 MB. With this the mapstore's RSS
-    high-water is ~26 MB lower at the same frame (docs/BENCHMARKS.md). A fixed threshold also stops glibc's rise.
-    Called by a service's main, never at import."""
-    _mallopt((M_MMAP_THRESHOLD, mmap_kib << 10), (M_ARENA_MAX, 2))
-
-
 def tune_malloc_for_tensors(keep_mib: int = 512) -> None:
     """glibc: never return large tensor buffers to the kernel between uses. Dense BA on the CPU allocates
     tens of ~10-40 MB temporaries per iteration; fresh mmap pages cost a page fault per 4 KiB, which made an

@@ -44,8 +44,8 @@ def service_main(name: str, body: ServiceBody, tune_malloc: Callable[[], None] |
 
     Bad settings and known errors end the process with one message and exit code 2, never a traceback.
     ``tune_malloc`` tunes the allocator for what the service holds, one of :mod:`services.common.lifecycle`'s
-    (``tune_malloc_for_frames``: frame-sized buffers; ``_for_tensors``: large tensor temporaries; ``_for_maps``:
-    a long-lived map changed in place); None leaves glibc's defaults.
+    (``tune_malloc_for_frames``: frame-sized buffers and the map's arrays; ``_for_tensors``: large tensor
+    temporaries); None leaves glibc's defaults.
     ``blas_threads`` caps numpy's BLAS pool (``limit_blas_threads``; None leaves it).
     With ``KMVIPE_METRICS_PORT`` set, ``/metrics``, ``/livez`` and ``/readyz`` are served while the bus is open
     (:mod:`services.common.metrics`).

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import sys
 
-from services.common.lifecycle import tune_malloc_for_maps
+from services.common.lifecycle import tune_malloc_for_frames
 from services.common.service_main import service_main
 from services.common.streams import serve
 from services.mapstore.config import MapstoreSettings
@@ -25,7 +25,7 @@ def _body(bus, stop) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return service_main("mapstore", _body, tune_malloc_for_maps, blas_threads=1)
+    return service_main("mapstore", _body, tune_malloc_for_frames, blas_threads=1)
 
 
 if __name__ == "__main__":
