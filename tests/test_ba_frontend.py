@@ -128,6 +128,16 @@ def test_interpolation_hits_the_endpoints_and_the_midpoint():
     assert abs(_rot_deg(a[0], mid) - _rot_deg(mid, a[1])) < 1e-9
 
 
+@pytest.mark.parametrize("turn_deg", [0.0, 10.0, 170.0])
+def test_interpolation_is_the_torch_cores_geodesic(turn_deg):
+    """interpolate runs on numpy (speed); it must stay torch's se3 geodesic, from no turn to a turn of 120°."""
+    a = synthetic.trajectory(2, torch.Generator().manual_seed(1), step=0.3, turn_deg=turn_deg)
+    for frac in (0.0, 0.37, 0.5, 1.0):
+        expected = a[0] @ se3.exp(frac * se3.log(se3.inverse(a[0]) @ a[1]))
+        got = interpolate(a[0], a[1], frac)
+        assert got.dtype == a[0].dtype and torch.allclose(got, expected, atol=1e-12), (turn_deg, frac)
+
+
 def test_grid_intrinsics_round_trip():
     work = np.array([443.4, 443.4, 255.5, 191.5])
     grid = grid_intrinsics(work)

@@ -277,6 +277,10 @@ def _linearised(state: BAState, prep: _Prepared, params: BAParams, frozen: _Froz
 def _apply(state: BAState, step: schur.Step, params: BAParams,
            focal_bounds: tuple[float, float] | None = None) -> BAState:
     poses = se3.retract(state.poses, step.poses)
+    # the gauge's step is zero, but retract's re-orthonormalisation would still move it by round-off, and with
+    # it every "fixed" pose a background BA is meant to leave exactly where it was
+    fixed = min(params.fixed_poses, len(poses))
+    poses[:fixed] = state.poses[:fixed]
     disp = (state.disparity + step.disparity.view_as(state.disparity)).clamp_min(params.min_disparity)
     intr = state.intrinsics.clone()
     fx = intr[0] + step.focal

@@ -23,7 +23,13 @@ class CameraReprojection(NamedTuple):
 
     coords: np.ndarray  # (M, P, 2) pixel (x, y) in the camera
     valid: np.ndarray  # (M, P) bool: in front of the camera (image bounds not checked)
-    j_pose: np.ndarray | None  # (M, P, 2, 6) d coords / d xi of the camera (left tangent of its world_from_cam)
+    jac_rows: np.ndarray | None  # (6, M, 2, P) d coords / d xi of the camera (left tangent of its world_from_cam),
+    # one contiguous row per tangent direction: the layout a 6x6 normal matrix is summed from (motion.align)
+
+    @property
+    def j_pose(self) -> np.ndarray | None:
+        """The Jacobian as ``(M, P, 2, 6)``, :mod:`services.ba.core.projective`'s layout (a view)."""
+        return None if self.jac_rows is None else self.jac_rows.transpose(1, 3, 2, 0)
 
 
 def pixel_grid(height: int, width: int) -> np.ndarray:
@@ -54,20 +60,22 @@ def reproject_into(source_poses: np.ndarray, pose: np.ndarray, disparity: np.nda
     coords = np.stack([fx * u_n + cx, fy * v_n + cy], axis=-1)
     if not with_jacobian:
         return CameraReprojection(coords, valid, None)
-    # a[c, r]: d pixel coordinate r / d world coordinate c of the scaled point; the camera's left tangent moves
-    # that point (relative to the camera) by -[d I, -[p_w]x] xi (services.ba.core.projective, with J_j = -J_i)
+    # a_c[:, r]: d pixel coordinate r / d world coordinate c of the scaled point; the camera's left tangent moves
+    # that point (relative to the camera) by -[d I, -[p_w]x] xi (services.ba.core.projective, with J_j = -J_i).
+    # Built a tangent direction at a time on (M, 2, P) arrays: the (M, P, 2, 6) layout's strided writes cost a
+    # tracked frame ~3x more (docs/BENCHMARKS.md)
     gx, gy = fx * inv_z, fy * inv_z  # (M, P)
-    ax = gx[:, None] * (rot_j[None, :, 0, None] - u_n[:, None] * rot_j[None, :, 2, None])  # (M, 3, P)
-    ay = gy[:, None] * (rot_j[None, :, 1, None] - v_n[:, None] * rot_j[None, :, 2, None])
-    a = np.stack([ax, ay], axis=2)  # (M, 3, 2, P)
+    a = [np.stack([gx * (rot_j[c, 0] - u_n * rot_j[c, 2]), gy * (rot_j[c, 1] - v_n * rot_j[c, 2])], axis=1)
+         for c in range(3)]  # (M, 2, P) each
     p_w = rot_i @ q + trans_i[:, :, None] * disparity[:, None, :]  # (M, 3, P)
-    d = disparity[:, None, None, :]
-    jac = np.empty((m, n_pix, 2, 6))
-    jac[..., :3] = -(a * d).transpose(0, 3, 2, 1)
-    p = p_w[:, :, None, :]
-    jac[..., 3] = -(p[:, 1] * a[:, 2] - p[:, 2] * a[:, 1]).transpose(0, 2, 1)
-    jac[..., 4] = -(p[:, 2] * a[:, 0] - p[:, 0] * a[:, 2]).transpose(0, 2, 1)
-    jac[..., 5] = -(p[:, 0] * a[:, 1] - p[:, 1] * a[:, 0]).transpose(0, 2, 1)
+    p = [p_w[:, c, None, :] for c in range(3)]  # (M, 1, P) each
+    d = disparity[:, None, :]
+    jac = np.empty((6, m, 2, n_pix))
+    for c in range(3):
+        np.multiply(a[c], -d, out=jac[c])
+    jac[3] = p[2] * a[1] - p[1] * a[2]
+    jac[4] = p[0] * a[2] - p[2] * a[0]
+    jac[5] = p[1] * a[0] - p[0] * a[1]
     return CameraReprojection(coords, valid, jac)
 
 

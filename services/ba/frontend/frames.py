@@ -21,7 +21,8 @@ import numpy as np
 import torch
 
 from services.ba.core import flow as core_flow
-from services.ba.core import se3
+from services.ba.core import se3, se3_numpy
+from services.ba.core.host_arrays import as_numpy
 from services.ba.frontend import motion
 from services.ba.frontend.graph import STILL_STEP, KeyframeGraph, Targets
 from services.ba.frontend.params import MotionParams
@@ -69,9 +70,12 @@ def merge_ranges(ranges: list[tuple[int, int]]) -> list[tuple[int, int]]:
 
 
 def interpolate(pose_a: torch.Tensor, pose_b: torch.Tensor, frac: float) -> torch.Tensor:
-    """Pose ``(4, 4)`` a fraction ``frac`` of the way from ``pose_a`` to ``pose_b`` (geodesic in SE3)."""
-    rel = se3.inverse(pose_a) @ pose_b
-    return pose_a @ se3.exp(frac * se3.log(rel))
+    """Pose ``(4, 4)`` a fraction ``frac`` of the way from ``pose_a`` to ``pose_b`` (geodesic in SE3), as
+    ``pose_a``'s tensor. On the host: torch's ~30 small operations of one 4x4 log cost ~0.4 ms, a quarter of the
+    end of stream's frame solves (docs/BENCHMARKS.md); numpy's take a tenth of that."""
+    a = as_numpy(pose_a)
+    rel = se3_numpy.inverse(a) @ as_numpy(pose_b)
+    return torch.from_numpy(a @ se3_numpy.exp(frac * se3_numpy.log(rel))).to(pose_a)
 
 
 def _at_time(ends: tuple[tuple[int, torch.Tensor], ...], stamp: int) -> torch.Tensor:

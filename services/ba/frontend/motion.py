@@ -66,17 +66,17 @@ def align(pose, kf_poses, kf_disparity, targets, confidence, intrinsics, params:
         rp, resid, weight = _linearise(pose, kf_poses, disp, pixels, intrinsics, tgt, conf, params, True)
         if float(weight.sum()) < params.min_weight:
             return MotionResult(start, float("nan"), float(weight.sum()), False)
-        jac = rp.j_pose.reshape(-1, 6)  # (M * P * 2, 6) d coords / d xi of the camera
-        wj = np.repeat(weight.reshape(-1), 2)[:, None] * jac  # each pixel's weight on its x and y rows
-        hess = wj.T @ jac
-        grad = wj.T @ resid.reshape(-1)
+        jac = rp.jac_rows.reshape(6, -1)  # (6, M * 2 * P) d coords / d xi of the camera
+        wj = jac * np.repeat(weight[:, None, :], 2, axis=1).reshape(-1)  # each pixel's weight on its x and y rows
+        hess = wj @ jac.T
+        grad = wj @ resid.transpose(0, 2, 1).reshape(-1)
         hess = hess + params.damping * np.diag(np.diag(hess)) + 1e-12 * np.eye(6)
         step = np.linalg.solve(hess, grad)
         pose = se3_numpy.retract(pose, step)
         # the step moved the trusted pixels by a thousandth of a grid pixel on average: converged. Tracking's start
         # (a constant-velocity prediction) is usually a few steps from the answer, and every frame of a live camera
         # would pay for the iterations after that
-        moved = (weight * np.linalg.norm((jac @ step).reshape(weight.shape + (2,)), axis=-1)).sum() / weight.sum()
+        moved = (weight * np.linalg.norm((step @ jac).reshape(m, 2, -1), axis=1)).sum() / weight.sum()
         if float(moved) < params.step_tol:
             break
     _, resid, weight = _linearise(pose, kf_poses, disp, pixels, intrinsics, tgt, conf, params, False)
