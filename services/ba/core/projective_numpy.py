@@ -62,8 +62,8 @@ def reproject_into(source_poses: np.ndarray, pose: np.ndarray, disparity: np.nda
         return CameraReprojection(coords, valid, None)
     # a_c[:, r]: d pixel coordinate r / d world coordinate c of the scaled point; the camera's left tangent moves
     # that point (relative to the camera) by -[d I, -[p_w]x] xi (services.ba.core.projective, with J_j = -J_i).
-    # Built a tangent direction at a time on (M, 2, P) arrays: the (M, P, 2, 6) layout's strided writes cost a
-    # tracked frame ~3x more (docs/BENCHMARKS.md)
+    # Built a tangent direction at a time on (M, 2, P) arrays: the (M, P, 2, 6) layout's strided writes made one
+    # alignment ~20 % slower (docs/BENCHMARKS.md)
     gx, gy = fx * inv_z, fy * inv_z  # (M, P)
     a = [np.stack([gx * (rot_j[c, 0] - u_n * rot_j[c, 2]), gy * (rot_j[c, 1] - v_n * rot_j[c, 2])], axis=1)
          for c in range(3)]  # (M, 2, P) each

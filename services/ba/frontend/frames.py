@@ -71,8 +71,8 @@ def merge_ranges(ranges: list[tuple[int, int]]) -> list[tuple[int, int]]:
 
 def interpolate(pose_a: torch.Tensor, pose_b: torch.Tensor, frac: float) -> torch.Tensor:
     """Pose ``(4, 4)`` a fraction ``frac`` of the way from ``pose_a`` to ``pose_b`` (geodesic in SE3), as
-    ``pose_a``'s tensor. On the host: torch's ~30 small operations of one 4x4 log cost ~0.4 ms, a quarter of the
-    end of stream's frame solves (docs/BENCHMARKS.md); numpy's take a tenth of that."""
+    ``pose_a``'s tensor. On the host: torch's small operations on one 4x4 took 0.7 ms an interpolation, a quarter
+    of the end of stream's frame solves (docs/BENCHMARKS.md); numpy's take 0.06 ms."""
     a = as_numpy(pose_a)
     rel = se3_numpy.inverse(a) @ as_numpy(pose_b)
     return torch.from_numpy(a @ se3_numpy.exp(frac * se3_numpy.log(rel))).to(pose_a)
