@@ -69,10 +69,10 @@ def reproject_into(source_poses: np.ndarray, pose: np.ndarray, disparity: np.nda
          for c in range(3)]  # (M, 2, P) each
     p_w = rot_i @ q + trans_i[:, :, None] * disparity[:, None, :]  # (M, 3, P)
     p = [p_w[:, c, None, :] for c in range(3)]  # (M, 1, P) each
-    d = disparity[:, None, :]
+    minus_d = -disparity[:, None, :]
     jac = np.empty((6, m, 2, n_pix))
     for c in range(3):
-        np.multiply(a[c], -d, out=jac[c])
+        np.multiply(a[c], minus_d, out=jac[c])
     jac[3] = p[2] * a[1] - p[1] * a[2]
     jac[4] = p[0] * a[2] - p[2] * a[0]
     jac[5] = p[1] * a[0] - p[0] * a[1]
