@@ -41,3 +41,15 @@ def test_values_fixed_point_cannot_hold_are_refused(bad):
 def test_columns_of_different_lengths_are_refused():
     with pytest.raises(ValueError, match="one length"):
         format_rows([np.zeros(3), np.zeros(4)], (0, 0))
+
+
+@pytest.mark.parametrize("top", [2**32 - 1, 2**32])
+def test_columns_either_side_of_32_bit_digits_read_as_python_formats_them(top):
+    """Columns whose scaled values fit in 32 bits take narrower arithmetic: both sides of that line agree with
+    Python's formatting, pixel coordinates to 1e-6 px among them."""
+    rng = np.random.default_rng(1)
+    ints = np.append(rng.integers(-top, top, 500), [top, -top, 0, 9, 10, 99, 100])
+    pixels = np.append(rng.uniform(-0.5, 4095.5, 500), [top / 1e6, -top / 1e6, 0.0, 1e-6, 0.5, 9.999999, 10.0])
+    text, _ = format_rows([ints, pixels], (0, 6))
+    assert text.decode().split() == [s for i, v in zip(ints, pixels)
+                                     for s in (str(int(i)), f"{round(float(v), 6):.6f}")]

@@ -27,16 +27,18 @@ def format_rows(columns: Sequence[np.ndarray], decimals: Sequence[int]) -> tuple
                          f"{[c.shape for c in columns]}")
     n = len(columns[0]) if columns else 0
     blocks = [_column_chars(c, d) for c, d in zip(columns, decimals)]
-    chars = np.concatenate([b[0] for b in blocks], axis=1) if blocks else np.zeros((n, 0), np.uint8)
-    keep = np.concatenate([b[1] for b in blocks], axis=1) if blocks else np.zeros((n, 0), bool)
+    # built a character position at a time, (width, n): each digit is one contiguous row, and the rows are
+    # turned into lines once, by the selection (1.5x faster than writing strided (n, width) columns)
+    chars = np.concatenate([b[0] for b in blocks]).T if blocks else np.zeros((n, 0), np.uint8)
+    keep = np.concatenate([b[1] for b in blocks]).T if blocks else np.zeros((n, 0), bool)
     offsets = np.zeros(n + 1, np.int64)
-    np.cumsum(keep.sum(axis=1), out=offsets[1:])
+    np.cumsum(np.count_nonzero(keep, axis=1), out=offsets[1:])
     return chars[keep].tobytes(), offsets
 
 
 def _column_chars(values: np.ndarray, decimals: int) -> tuple[np.ndarray, np.ndarray]:
-    """(n, width) ASCII of one column laid out as sign, digits, point, decimals, space, and which to keep: the
-    sign where negative, no leading zeros before the units digit."""
+    """(width, n) ASCII of one column, a character position per row: sign, digits, point, decimals, space; and
+    which to keep: the sign where negative, no leading zeros before the units digit."""
     if values.dtype.kind in "iu" and decimals == 0:
         scaled = values.astype(np.int64)
     else:
@@ -45,19 +47,23 @@ def _column_chars(values: np.ndarray, decimals: int) -> tuple[np.ndarray, np.nda
             raise ValueError("values must be finite and below 2**63 / 10**decimals to be written in fixed point")
         scaled = scaled.astype(np.int64)
     magnitude = np.abs(scaled).astype(np.uint64)
-    digits = max(len(str(int(magnitude.max()))) if len(magnitude) else 1, decimals + 1)
+    top = int(magnitude.max()) if len(magnitude) else 0
+    if top < 2**32:  # 32-bit division is ~1.6x faster, and pixel coordinates to 1e-6 px fit
+        magnitude = magnitude.astype(np.uint32)
+    digits = max(len(str(top)), decimals + 1)
     point = 1 if decimals else 0
-    chars = np.empty((len(values), 1 + digits + point + 1), np.uint8)
-    chars[:, 0] = _MINUS
-    chars[:, -1] = _SPACE
-    units = digits - decimals  # columns of the integer part
+    chars = np.empty((1 + digits + point + 1, len(values)), np.uint8)
+    chars[0] = _MINUS
+    chars[-1] = _SPACE
+    units = digits - decimals  # positions of the integer part
+    ten = magnitude.dtype.type(10)
     for i in range(digits - 1, -1, -1):  # least significant first
-        magnitude, digit = np.divmod(magnitude, np.uint64(10))
-        chars[:, 1 + i + (point if i >= units else 0)] = _ZERO + digit.astype(np.uint8)
+        magnitude, digit = np.divmod(magnitude, ten)
+        np.add(digit, _ZERO, out=chars[1 + i + (point if i >= units else 0)], casting="unsafe")
     if point:
-        chars[:, 1 + units] = _POINT
+        chars[1 + units] = _POINT
     keep = np.ones(chars.shape, bool)
-    keep[:, 0] = scaled < 0
-    # leading zeros go, up to the units digit: a column is kept once a nonzero digit came before or at it
-    keep[:, 1:units] = np.logical_or.accumulate(chars[:, 1:units] != _ZERO, axis=1)
+    keep[0] = scaled < 0
+    # leading zeros go, up to the units digit: a position is kept once a nonzero digit came before or at it
+    np.logical_or.accumulate(chars[1:units] != _ZERO, axis=0, out=keep[1:units])
     return chars, keep
