@@ -59,6 +59,7 @@ class FrontendRun:
     first: dict[int, tuple[int, np.ndarray]]  # seq -> the first pose (tracking's with track=True)
     focal_px: float  # estimated focal length, source pixels
     start_focal_px: float
+    principal_px: tuple[float, float]  # estimated principal point (cx, cy), source pixels
     keyframes: int
     graph_keyframes: int
     ba_seconds: float
@@ -147,8 +148,10 @@ def run_frontend(frames: list[SourceFrame], focal: float | None = None,
     keep(frontend.finish())
     finish_seconds = time.perf_counter() - t0
     graph_kf = len(frontend.graph) if frontend.graph is not None else 0
-    focal_px = float(frontend.intrinsics[0]) / size.scale_x if frontend.graph is not None else start.fx
-    return FrontendRun(latest, first, focal_px, start.fx, n_kf, graph_kf, ba_seconds, finish_seconds,
+    final = (Intrinsics(*(float(v) for v in frontend.intrinsics)).scaled(1 / size.scale_x, 1 / size.scale_y)
+             if frontend.graph is not None else start)
+    return FrontendRun(latest, first, final.fx, start.fx, (final.cx, final.cy), n_kf, graph_kf, ba_seconds,
+                       finish_seconds,
                        time.perf_counter() - t_start, frontend)
 
 
@@ -192,7 +195,8 @@ def main() -> None:
     est = run.trajectory()
     poses = est.world_from_cam
     print(f"frames {len(frames)}  posed {len(run.latest)}  keyframes {run.keyframes} (graph {run.graph_keyframes})")
-    print(f"focal {run.focal_px:.1f} px (start {run.start_focal_px:.1f})")
+    print(f"focal {run.focal_px:.1f} px (start {run.start_focal_px:.1f}), principal point "
+          f"({run.principal_px[0]:.1f}, {run.principal_px[1]:.1f}) px")
     print(f"BA {run.ba_seconds:.1f} s ({run.ba_seconds / max(run.keyframes, 1):.2f} s/keyframe), finish "
           f"{run.finish_seconds:.1f} s, wall {run.wall_seconds:.1f} s")
     print("time in: " + ", ".join(f"{name} {sec:.1f} s ({calls} calls)" for name, (sec, calls) in spent.items()))

@@ -145,6 +145,24 @@ def test_focal_jacobian_holds_the_aspect_of_a_non_square_resize():
     _assert_rel_close(out.j_focal, torch.func.jacfwd(coords)(intr[0]))
 
 
+def test_principal_point_jacobian_matches_autograd_and_leaves_the_others_as_they_were():
+    """d coords / d (cx, cy) against jacfwd, on a non-square resize and an off-centre principal point; asking
+    for it changes none of the other Jacobians."""
+    pose_i, pose_j, disp, pixels, intr = _scene()
+    intr = torch.stack([intr[0], intr[0] * 1.016, intr[2] - 3.0, intr[3] + 1.5])
+    plain = projective.reproject(pose_i, pose_j, disp, pixels, intr)
+    out = projective.reproject(pose_i, pose_j, disp, pixels, intr, principal_point=True)
+    assert plain.j_principal is None and out.j_principal.shape == (5, 40, 2, 2)
+
+    def coords(centre):
+        k = torch.cat([intr[:2], centre])
+        return projective.reproject(pose_i, pose_j, disp, pixels, k, with_jacobians=False).coords
+
+    _assert_rel_close(out.j_principal, torch.func.jacfwd(coords)(intr[2:]))
+    torch.testing.assert_close(out.j_pose_focal[..., :7], plain.j_pose_focal, rtol=0, atol=0)
+    torch.testing.assert_close(out.coords, plain.coords, rtol=0, atol=0)
+
+
 def test_reprojection_marks_points_behind_camera_invalid():
     eye = torch.eye(4, dtype=torch_dtype)[None]
     behind = eye.clone()

@@ -1,6 +1,7 @@
 """Dense BA: Schur solve = dense solve, Jacobian rows vs autograd, convergence on exact synthetic scenes."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -89,6 +90,47 @@ def test_focal_bounds_constrain_the_focal_and_keep_the_result():
     assert float(free.state.intrinsics[0]) == pytest.approx(truth, rel=1e-6)
 
 
+def _off_centre(seed=2):
+    """A window whose principal point is (1.5, -1.0) grid px off the centre (KITTI 07's is ~0.7 grid px off), and
+    a start at the centre with a focal 10 % short."""
+    win = synthetic.make_window(n=6, h=24, w=32, seed=seed, principal_offset=(1.5, -1.0))
+    start = _start(win, seed=3, focal_factor=0.9)
+    start.intrinsics[2:] = torch.tensor([15.5, 11.5], dtype=torch.float64)
+    return win, start
+
+
+def test_principal_point_is_recovered_and_held_at_the_centre_it_bends_the_poses():
+    win, start = _off_centre()
+    # a prior as weak as a millionth of one flow residual: in six keyframes the flow pins a principal point less
+    # than it pins a focal (one grid px moves the energy by ~1e-4 here), so any usable prior would show
+    params = BAParams(iterations=30, optimise_focal=True, optimise_principal_point=True, principal_point_sigma=1e6,
+                      robust=L2, compute_dtype=EXACT)
+    res = ba.run_ba(start, win.problem, params)
+    torch.testing.assert_close(res.state.intrinsics, win.truth.intrinsics, rtol=0, atol=0.01)
+    t_err, r_err = _pose_errors(res.state.poses, win.truth.poses)
+    assert t_err < 1e-3 and r_err < 0.05, (t_err, r_err)
+    # the control: the focal alone, the principal point held at the centre, cannot explain the flow
+    held = ba.run_ba(start, win.problem, dataclasses.replace(params, optimise_principal_point=False))
+    assert held.state.intrinsics[2:].tolist() == [15.5, 11.5]
+    assert held.costs[-1] > 1e3 * res.costs[-1]
+    assert _pose_errors(held.state.poses, win.truth.poses)[1] > 10 * r_err
+
+
+def test_principal_point_stays_in_its_range_and_its_prior_holds_it_where_asked():
+    win, start = _off_centre()
+    params = BAParams(iterations=30, optimise_focal=True, optimise_principal_point=True, principal_point_sigma=1e6,
+                      principal_point_range=0.03, robust=L2, compute_dtype=EXACT)
+    bounded = ba.run_ba(start, win.problem, params)
+    # within 3 % of the width and height of the centre (0.96 and 0.72 grid px): cy, 1.0 off, stops at its bound
+    cx, cy = bounded.state.intrinsics[2:].tolist()
+    assert abs(cx - 15.5) <= 0.96 + 1e-12 and cy == pytest.approx(11.5 - 0.72)
+    assert all(bool(torch.isfinite(t).all()) for t in bounded.state) and bounded.costs[-1] < bounded.costs[0]
+    # a prior a thousand times tighter than one flow residual holds the guess it is given
+    tight = ba.run_ba(start, win.problem._replace(principal_point=(15.0, 12.0)),
+                      dataclasses.replace(params, principal_point_sigma=1e-3, principal_point_range=0.15))
+    assert tight.state.intrinsics[2:].tolist() == pytest.approx([15.0, 12.0], abs=0.02)
+
+
 def test_disparity_prior_fixes_metric_scale():
     win = synthetic.make_window(n=4, h=12, w=16, seed=4)
     problem = win.problem._replace(disp_prior=win.truth.disparity, prior_mask=torch.ones_like(win.truth.disparity))
@@ -148,6 +190,11 @@ def test_schur_step_equals_dense_solve():
     _assert_schur_step_equals_dense_solve(*_linearised(seed=7))
 
 
+def test_schur_step_equals_dense_solve_with_the_principal_point_and_its_prior():
+    state, problem, params = _linearised(seed=7)
+    _assert_schur_step_equals_dense_solve(state, problem, dataclasses.replace(params, optimise_principal_point=True))
+
+
 def test_schur_step_equals_dense_solve_with_a_landmark_many_edges_reach():
     """Keyframes of very different out-degrees (one reached by every other, as a landmark by revisits), edges in
     no particular order, more keyframes than one elimination chunk (schur.KEYFRAME_CHUNK): the coupling packed a
@@ -172,23 +219,33 @@ def _assert_schur_step_equals_dense_solve(state, problem, params):
     free = ba._free_camera_indices(n, params, None)
     zeros = torch.zeros(n, p, dtype=torch.float64)
     lm, eps = 1e-2, 1e-9
-    step = schur.solve(eq, problem.ii, problem.jj, n, free, lm, eps, eps, zeros, zeros)
+    n_intr = j_cam.shape[-1] - 6
+    prior = None
+    if n_intr == 3:  # the principal point's prior on its two columns, as run_ba adds it
+        prior = (6 * n + torch.tensor([1, 2]), torch.tensor([0.5, 2.0], dtype=torch.float64),
+                 torch.tensor([0.3, -0.1], dtype=torch.float64))
+    step = schur.solve(eq, problem.ii, problem.jj, n, free, lm, eps, eps, zeros, zeros, n_intr, prior)
     # dense Jacobian over [camera variables | disparities]
     e, r = len(problem.ii), residual.shape[2]
-    n_cam = 6 * n + 1
+    n_cam = 6 * n + n_intr
     jac = torch.zeros(e, p, r, n_cam + n * p, dtype=torch.float64)
     for k in range(e):  # test-only reference assembly
         i, j = int(problem.ii[k]), int(problem.jj[k])
         jac[k, :, :, 6 * i:6 * i + 6] += j_cam[k, :, :, :6]
         jac[k, :, :, 6 * j:6 * j + 6] -= j_cam[k, :, :, :6]
-        jac[k, :, :, 6 * n] += j_cam[k, :, :, 6]
+        jac[k, :, :, 6 * n:6 * n + n_intr] += j_cam[k, :, :, 6:]
         jac[k, torch.arange(p), :, n_cam + i * p + torch.arange(p)] += j_disp[k]
     keep = torch.cat([free, n_cam + torch.arange(n * p)])
     jmat, w = jac.reshape(-1, n_cam + n * p)[:, keep], weight.reshape(-1)
     h = jmat.T @ (w[:, None] * jmat)
     g = -jmat.T @ (w * residual.reshape(-1))
+    if prior is not None:
+        at = [int(torch.nonzero(free == c)) for c in prior[0]]
+        h[at, at] += prior[1]
+        g[at] += prior[2]
     dense = torch.linalg.solve(h + torch.diag(lm * torch.diagonal(h) + eps), g)
-    got = torch.cat([torch.cat([step.poses.reshape(-1), step.focal[None]])[free], step.disparity.reshape(-1)])
+    intrinsics = [step.focal[None]] + ([step.principal_point] if n_intr == 3 else [])
+    got = torch.cat([torch.cat([step.poses.reshape(-1), *intrinsics])[free], step.disparity.reshape(-1)])
     torch.testing.assert_close(got, dense, rtol=1e-6, atol=1e-9)
 
 

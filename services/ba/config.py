@@ -43,6 +43,15 @@ class BASettings(KmVipeSettings):
     16.5 -> 7.1 s, ATE 0.315 -> 0.309 m with both; this alone 14.9 s, 0.315 m)."""
     optimise_focal: bool = True
     """Refine the shared focal length (published on ``intrinsics``)."""
+    optimise_principal_point: bool = True
+    """Refine the principal point (cx, cy) wherever the focal is refined (``BAParams.optimise_principal_point``):
+    KITTI 07 0.31 -> 0.14 m, TartanAir 0.98 -> 0.76 % of path, at a focal further from the truth where the map's
+    flow wants one (KITTI -2.2 %, the desk +3.0 %; docs/BENCHMARKS.md)."""
+    principal_point_sigma: float = Field(BAParams.principal_point_sigma, gt=0)
+    """Grid px: the Gaussian prior that holds the principal point at its first guess (the image centre, or the
+    calibration hint), weighted as one flow residual (``BAParams.principal_point_sigma``)."""
+    principal_point_range: float = Field(BAParams.principal_point_range, gt=0, lt=0.5)
+    """The principal point stays within this fraction of the image's width / height of its centre."""
     lambda_embed: float = 0.0
     """Weight of the code-similarity residual (0 disables the term)."""
     embed_form: Literal["angular", "chordal"] = "angular"
@@ -99,7 +108,9 @@ class BASettings(KmVipeSettings):
                         rel_tol=self.global_rel_tol if global_ba else BAParams.rel_tol,
                         lambda_embed=self.lambda_embed, embed_form=self.embed_form, alpha_disp=self.alpha_disp,
                         disp_rel_damping=self.disp_rel_damping,
-                        optimise_focal=self.optimise_focal, robust=self.robust_params(),
+                        optimise_focal=self.optimise_focal, optimise_principal_point=self.optimise_principal_point,
+                        principal_point_sigma=self.principal_point_sigma,
+                        principal_point_range=self.principal_point_range, robust=self.robust_params(),
                         compute_dtype=self.compute_dtype, linearise_edges=self.linearise_edges)
 
     def flow_params(self) -> FlowParams:

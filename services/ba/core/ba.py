@@ -1,10 +1,12 @@
-"""Dense bundle adjustment (Levenberg-Marquardt) over keyframe poses, grid disparities and the focal length.
+"""Dense bundle adjustment (Levenberg-Marquardt) over keyframe poses, grid disparities and the intrinsics (the
+focal length; with ``BAParams.optimise_principal_point`` the principal point too).
 
 Energy (docs of :class:`services.ba.core.params.BAParams` give the weights)::
 
     E = lambda_photo * sum_{e,p} conf * c^2 * rho_alpha(|target - reproj|, c)       (ARK flow term)
       + lambda_embed * 1/2 sum_{e,p} conf * r_embed^2,   r_embed = 1 - cs  (or sqrt(2 (1 - cs)))
       + alpha_disp * 1/2 sum_{n,p} mask * (d - d_prior)^2
+      + 1/2 |(cx, cy) - principal_point|^2 / principal_point_sigma^2                   (when it is estimated)
 
 with ``alpha`` per pixel from :func:`services.ba.core.robust.ark_alpha` of the cosine similarity of the
 source code and the bilinear sample of the target code map at the reprojection (frozen within an iteration:
@@ -46,6 +48,8 @@ class BAProblem(NamedTuple):
     prior_mask: torch.Tensor | None = None  # (N, h, w) 1 where disp_prior is valid
     focal_bounds: tuple[float, float] | None = None  # fx stays inside (grid px): each step is projected onto it,
     # so a focal pushed against a bound still lets poses and depth converge (a result is never thrown away for it)
+    principal_point: tuple[float, float] | None = None  # (cx, cy) grid px the principal point's prior pulls to
+    # (BAParams.principal_point_sigma); None: where this solve starts
 
 
 class BAState(NamedTuple):
@@ -53,7 +57,7 @@ class BAState(NamedTuple):
 
     poses: torch.Tensor
     disparity: torch.Tensor
-    intrinsics: torch.Tensor  # (fx, fy, cx, cy) of the grid; fx is optimised when asked, fy keeps fy/fx
+    intrinsics: torch.Tensor  # (fx, fy, cx, cy) of the grid; fx (and cx, cy) optimised when asked, fy keeps fy/fx
 
 
 class BAResult(NamedTuple):
@@ -149,7 +153,7 @@ def _edge_residuals(state: BAState, prep: _Prepared, params: BAParams, with_jac:
     n, h, w = state.disparity.shape
     disp = state.disparity.reshape(n, -1)[prep.ii].to(prep.targets.dtype)
     rp = projective.reproject_planes(state.poses[prep.ii], state.poses[prep.jj], disp, prep.pixels,
-                                     state.intrinsics, with_jac)
+                                     state.intrinsics, with_jac, with_jac and _estimates_principal_point(params))
     flow = prep.targets - rp.coords
     flow_w = prep.confidence * rp.valid
     embed = None
@@ -214,6 +218,21 @@ def _sliced_frozen(frozen: _Frozen, edges: slice) -> _Frozen:
     return _Frozen(frozen.alpha[edges], kern, frozen.embed_weight[edges])
 
 
+def _estimates_principal_point(params: BAParams) -> bool:
+    return params.optimise_focal and params.optimise_principal_point
+
+
+def _principal_prior(state: BAState, centre: torch.Tensor, params: BAParams):
+    """The principal point's Gaussian prior at ``state``: (camera indices past the poses, diagonal, gradient,
+    energy), or None when it is not estimated."""
+    if not _estimates_principal_point(params):
+        return None
+    diff = state.intrinsics[2:] - centre
+    weight = 1.0 / params.principal_point_sigma**2
+    return (torch.tensor([1, 2], device=diff.device), torch.full_like(diff, weight), -weight * diff,
+            float(0.5 * weight * (diff**2).sum()))
+
+
 def _prior_terms(state: BAState, problem: BAProblem, params: BAParams):
     n = state.disparity.shape[0]
     if problem.disp_prior is None or params.alpha_disp <= 0:
@@ -235,12 +254,18 @@ def _energy(res: _Residuals, params: BAParams, frozen: _Frozen) -> float:
     return float(total)
 
 
-def _cost(state: BAState, prep: _Prepared, problem: BAProblem, params: BAParams, frozen: _Frozen) -> float:
+def _cost(state: BAState, prep: _Prepared, problem: BAProblem, params: BAParams, frozen: _Frozen,
+          centre: torch.Tensor) -> float:
     """The energy at a trial ``state``; in a problem linearised in slices, summed a slice at a time (a trial's
     residuals are only ever summed)."""
     energy = sum(_energy(_edge_residuals(state, _edges(prep, edges), params, False), params,
                          _sliced_frozen(frozen, edges)) for edges in _edge_slices(len(prep.ii), params))
-    return energy + _prior_terms(state, problem, params)[2]
+    return energy + _prior_terms(state, problem, params)[2] + _principal_energy(state, centre, params)
+
+
+def _principal_energy(state: BAState, centre: torch.Tensor, params: BAParams) -> float:
+    prior = _principal_prior(state, centre, params)
+    return 0.0 if prior is None else prior[3]
 
 
 def _normal_equations(res: _Residuals, params: BAParams, frozen: _Frozen) -> schur.NormalEquations:
@@ -276,6 +301,8 @@ def _linearised(state: BAState, prep: _Prepared, params: BAParams, frozen: _Froz
 
 def _apply(state: BAState, step: schur.Step, params: BAParams,
            focal_bounds: tuple[float, float] | None = None) -> BAState:
+    """``state`` moved by ``step``: poses retracted (the gauge's kept exactly), disparities clamped above
+    ``min_disparity``, the focal inside ``focal_bounds`` and the principal point inside its range."""
     poses = se3.retract(state.poses, step.poses)
     # the gauge's step is zero, but retract's re-orthonormalisation would still move it by round-off, and with
     # it every "fixed" pose a background BA is meant to leave exactly where it was
@@ -287,6 +314,12 @@ def _apply(state: BAState, step: schur.Step, params: BAParams,
     if focal_bounds is not None:
         fx = fx.clamp(*focal_bounds)
     intr[:2] = intr[:2] * (fx / intr[0])  # the step is in fx; fy keeps the aspect fy/fx
+    if _estimates_principal_point(params):
+        h, w = state.disparity.shape[1:]
+        size = intr.new_tensor([w, h])
+        low = (size - 1) / 2 - params.principal_point_range * size
+        intr[2:] = torch.minimum(torch.maximum(intr[2:] + step.principal_point.to(intr.dtype), low),
+                                 size - 1 - low)
     return BAState(poses, disp, intr)
 
 
@@ -305,7 +338,8 @@ def _rescale(state: BAState, anchor: int, other: int, distance: float) -> BAStat
 def _free_camera_indices(n_kf: int, params: BAParams, device) -> torch.Tensor:
     free = torch.arange(6 * min(params.fixed_poses, n_kf), 6 * n_kf, device=device)
     if params.optimise_focal:
-        free = torch.cat([free, torch.tensor([6 * n_kf], device=device)])
+        intrinsics = [0, 1, 2] if _estimates_principal_point(params) else [0]
+        free = torch.cat([free, 6 * n_kf + torch.tensor(intrinsics, device=device)])
     return free
 
 
@@ -327,18 +361,23 @@ def run_ba(state: BAState, problem: BAProblem, params: BAParams,
     res = _residuals(state, prep, params, with_jac=whole)
     ark = _ark(res, prep, params, None)
     frozen = _frozen(res, params, ark)
-    prior_cost = _prior_terms(state, problem, params)[2]
+    n_intrinsics = 3 if _estimates_principal_point(params) else 1
+    centre = (state.intrinsics[2:].clone() if problem.principal_point is None
+              else state.intrinsics.new_tensor(problem.principal_point))
+    prior_cost = _prior_terms(state, problem, params)[2] + _principal_energy(state, centre, params)
     costs = [_energy(res, params, frozen) + prior_cost]
     for it in range(params.iterations):
         prior_h, prior_g, _ = _prior_terms(state, problem, params)
         if params.disp_rel_damping > 0:  # damping, not energy: it slows what no flow constrains (BAParams)
             prior_h = prior_h + params.disp_rel_damping / state.disparity.reshape(n, -1).to(prior_h.dtype) ** 2
+        principal = _principal_prior(state, centre, params)
         step = schur.solve(_linearised(state, prep, params, frozen, res), prep.ii, prep.jj, n, free, lm,
-                           params.pose_eps, params.disp_eps, prior_h, prior_g)
+                           params.pose_eps, params.disp_eps, prior_h, prior_g, n_intrinsics,
+                           None if principal is None else (6 * n + principal[0], *principal[1:3]))
         trial = _apply(state, step, params, problem.focal_bounds)
         if scale_anchor:
             trial = _rescale(trial, 0, 1, distance)
-        trial_cost = _cost(trial, prep, problem, params, frozen)
+        trial_cost = _cost(trial, prep, problem, params, frozen, centre)
         logger.debug("BA iter %d cost %.6g -> %.6g (lm %.1e)", it, costs[-1], trial_cost, lm)
         if trial_cost < costs[-1]:
             state, lm = trial, lm * params.lm_down
@@ -347,7 +386,8 @@ def run_ba(state: BAState, problem: BAProblem, params: BAParams,
             ark = _ark(res, prep, params, ark)
             frozen = _frozen(res, params, ark)
             decrease = costs[-1] - trial_cost
-            costs.append(_energy(res, params, frozen) + _prior_terms(state, problem, params)[2])
+            costs.append(_energy(res, params, frozen) + _prior_terms(state, problem, params)[2]
+                         + _principal_energy(state, centre, params))
             if decrease <= params.rel_tol * costs[0]:
                 break
         else:

@@ -44,7 +44,8 @@ class RobustParams:
 
 @dataclass(frozen=True)
 class BAParams:
-    """Dense bundle adjustment over keyframe poses, grid disparities and a shared focal length."""
+    """Dense bundle adjustment over keyframe poses, grid disparities and shared intrinsics (the focal length and,
+    when asked, the principal point)."""
 
     iterations: int = 10  # Gauss-Newton/LM iterations per call
     lambda_photo: float = 1.0  # weight of the flow (photometric-style) term
@@ -52,6 +53,14 @@ class BAParams:
     embed_form: str = "angular"  # "angular": r = 1 - cs; "chordal": r = sqrt(2 (1 - cs))
     alpha_disp: float = 0.0  # weight of the disparity prior (d - d_prior)^2 where a prior is given
     optimise_focal: bool = False  # refine the focal length fx (fy keeps its ratio to fx)
+    optimise_principal_point: bool = False  # with optimise_focal, refine (cx, cy) too: a lens's centre is off the
+    # image centre by up to a few percent, and held at the centre it bends the trajectory (KITTI 07 with its true
+    # principal point given: 0.13-0.27 m, at the image centre 0.33 m; docs/BENCHMARKS.md)
+    principal_point_sigma: float = 1.0  # grid px: (cx, cy) are pulled to their first guess (BAProblem.principal_point)
+    # by a Gaussian prior of this deviation, weighted as one flow residual: a direction the flow leaves open stays
+    # at the guess instead of wandering, one the flow constrains is not held
+    principal_point_range: float = 0.15  # (cx, cy) stay within this fraction of the grid's width / height of the
+    # grid's centre: each step is projected onto it, like the focal's bounds
     fixed_poses: int = 1  # number of oldest window poses held fixed (gauge); >= 1
     fix_scale: bool = True  # without a prior: rescale after each step so |c_1 - c_0| keeps its start value
     lm_init: float = 1e-4  # initial Levenberg-Marquardt damping (relative to the diagonal)
@@ -81,6 +90,9 @@ class BAParams:
             raise ValueError(f"compute_dtype must be 'float32' or 'float64', got {self.compute_dtype!r}")
         if self.linearise_edges < 0:
             raise ValueError(f"linearise_edges must be >= 0 (0: all edges at once), got {self.linearise_edges}")
+        if not self.principal_point_sigma > 0 or not 0 < self.principal_point_range < 0.5:
+            raise ValueError(f"principal_point_sigma must be > 0 and principal_point_range in (0, 0.5), got "
+                             f"{self.principal_point_sigma}, {self.principal_point_range}")
         if self.embed_form not in ("angular", "chordal"):
             raise ValueError(f"embed_form must be 'angular' or 'chordal', got {self.embed_form!r}")
 

@@ -10,7 +10,9 @@ Jacobians (all analytic, checked against ``torch.func.jacfwd`` in tests) are wit
   ``xi = (rho, phi)``). With this convention ``J_pose_j = -J_pose_i`` exactly;
 * the disparity ``d`` of the source pixel;
 * the **focal length** ``fx``, with the aspect ``fy / fx`` held (the working resize may scale x and y a little
-  differently; the principal point is held fixed).
+  differently);
+* when asked, the **principal point** ``(cx, cy)``: a lens's centre is off the image centre by up to a few
+  percent (KITTI 07: 10.6 px of 1226), and BA that holds it at the centre bends the trajectory instead.
 
 Coordinates are pixels of whatever image the intrinsics belong to (in BA: the 1/8 grid, see
 docs/CONVENTIONS.md).
@@ -29,7 +31,8 @@ class Reprojection(NamedTuple):
 
     coords: torch.Tensor  # (E, P, 2) pixel (x, y) in keyframe j
     valid: torch.Tensor  # (E, P) bool: in front of camera j (does not check the image bounds)
-    j_pose_focal: torch.Tensor | None  # (E, P, 2, 7) d coords / d [xi_i, f] (one buffer, see the views below)
+    j_pose_focal: torch.Tensor | None  # (E, P, 2, 7 or 9) d coords / d [xi_i, f(, cx, cy)] (one buffer, see the
+    # views below)
     j_disp: torch.Tensor | None  # (E, P, 2) d coords / d disparity of the source pixel
 
     @property
@@ -46,6 +49,11 @@ class Reprojection(NamedTuple):
     def j_focal(self) -> torch.Tensor:
         """``(E, P, 2)`` d coords / d fx (fy / fx held)."""
         return self.j_pose_focal[..., 6]
+
+    @property
+    def j_principal(self) -> torch.Tensor | None:
+        """``(E, P, 2, 2)`` d coords / d (cx, cy), or None when they were not asked for."""
+        return self.j_pose_focal[..., 7:9] if self.j_pose_focal.shape[-1] == 9 else None
 
 
 def pixel_grid(height: int, width: int, dtype=torch.float64, device=None) -> torch.Tensor:
@@ -84,7 +92,8 @@ def project(points: torch.Tensor, intrinsics: torch.Tensor) -> torch.Tensor:
 
 
 def reproject(world_from_cam_i: torch.Tensor, world_from_cam_j: torch.Tensor, disparity: torch.Tensor,
-              pixels: torch.Tensor, intrinsics: torch.Tensor, with_jacobians: bool = True) -> Reprojection:
+              pixels: torch.Tensor, intrinsics: torch.Tensor, with_jacobians: bool = True,
+              principal_point: bool = False) -> Reprojection:
     """Reproject source pixels of keyframe ``i`` with their disparities into keyframe ``j``, per edge.
 
     Args:
@@ -96,11 +105,13 @@ def reproject(world_from_cam_i: torch.Tensor, world_from_cam_j: torch.Tensor, di
             ``fy / fx`` held (a resize to the working size scales x and y differently; one focal for both biased
             KITTI's by +2.3 %).
         with_jacobians: also return the analytic Jacobians.
+        principal_point: the Jacobians include d coords / d (cx, cy) (``j_principal``).
     Returns:
         :class:`Reprojection` (Jacobian fields ``None`` when ``with_jacobians`` is false); the tensors are
         views of the channels-first :class:`PlaneReprojection` of :func:`reproject_planes`.
     """
-    out = reproject_planes(world_from_cam_i, world_from_cam_j, disparity, pixels, intrinsics, with_jacobians)
+    out = reproject_planes(world_from_cam_i, world_from_cam_j, disparity, pixels, intrinsics, with_jacobians,
+                           principal_point)
     if not with_jacobians:
         return Reprojection(out.coords.transpose(1, 2), out.valid, None, None)
     return Reprojection(out.coords.transpose(1, 2), out.valid, out.jac.permute(0, 3, 2, 1),
@@ -112,13 +123,13 @@ class PlaneReprojection(NamedTuple):
 
     coords: torch.Tensor  # (E, 2, P) pixel (x, y) in keyframe j
     valid: torch.Tensor  # (E, P) bool: in front of camera j
-    jac: torch.Tensor | None  # (E, 7, 2, P) d coords / d [xi_i, f]; d / d xi_j is minus the first 6 rows
+    jac: torch.Tensor | None  # (E, 7 or 9, 2, P) d coords / d [xi_i, f(, cx, cy)]; d / d xi_j is minus the first 6
     j_disp: torch.Tensor | None  # (E, 2, P) d coords / d disparity of the source pixel
 
 
 def reproject_planes(world_from_cam_i: torch.Tensor, world_from_cam_j: torch.Tensor, disparity: torch.Tensor,
-                     pixels: torch.Tensor, intrinsics: torch.Tensor,
-                     with_jacobians: bool = True) -> PlaneReprojection:
+                     pixels: torch.Tensor, intrinsics: torch.Tensor, with_jacobians: bool = True,
+                     principal_point: bool = False) -> PlaneReprojection:
     """:func:`reproject` in the channels-first layout; per-edge rigid motions are formed in the pose dtype,
     per-pixel arithmetic runs in ``disparity.dtype`` (float32 halves the memory traffic of dense BA)."""
     n_edges, n_pix = disparity.shape
@@ -152,7 +163,7 @@ def reproject_planes(world_from_cam_i: torch.Tensor, world_from_cam_j: torch.Ten
     a = torch.stack([gx * (cols[:, :, 0] - u_n[:, None] * cols[:, :, 2]),
                      gy * (cols[:, :, 1] - v_n[:, None] * cols[:, :, 2])], 2)  # (E, 3, 2, P)
     p_w = (rot_i.to(dtype) @ q + world_from_cam_i[:, :3, 3, None].to(dtype) * d)[:, :, None]  # (E, 3, 1, P)
-    jac = torch.empty(n_edges, 7, 2, n_pix, dtype=dtype, device=disparity.device)
+    jac = torch.empty(n_edges, 9 if principal_point else 7, 2, n_pix, dtype=dtype, device=disparity.device)
     # the left tangent of T_i moves the world point by [d I, -[p_w]x] xi; a^T (-[p_w]x) is the row (p_w x a)^T
     torch.mul(a, d[:, :, None], out=jac[:, :3])
     jac[:, 3] = p_w[:, 1] * a[:, 2] - p_w[:, 2] * a[:, 1]
@@ -164,4 +175,10 @@ def reproject_planes(world_from_cam_i: torch.Tensor, world_from_cam_j: torch.Ten
     dx_df = (rot_ji[:, :, 2:3] - rq) / fx  # (E, 3, P)
     jac[:, 6, 0] = u_n + gx[:, 0] * (dx_df[:, 0] - u_n * dx_df[:, 2])
     jac[:, 6, 1] = (fy / fx) * v_n + gy[:, 0] * (dx_df[:, 1] - v_n * dx_df[:, 2])
+    if principal_point:
+        # (cx, cy) enter q as -(cx / fx, cy / fy) and the projection as + (cx, cy): d x_j / d cx = -R_ji e_x / fx
+        for k, (axis, f) in enumerate(((0, fx), (1, fy))):
+            dx = (-rot_ji[:, :, axis] / f)[..., None]  # (E, 3, 1)
+            jac[:, 7 + k, 0] = gx[:, 0] * (dx[:, 0] - u_n * dx[:, 2]) + (axis == 0)
+            jac[:, 7 + k, 1] = gy[:, 0] * (dx[:, 1] - v_n * dx[:, 2]) + (axis == 1)
     return PlaneReprojection(coords, valid, jac, j_disp)

@@ -81,8 +81,10 @@ def temporal_edges(n: int, radius: int) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def make_window(n: int = 6, h: int = 24, w: int = 32, focal: float = 28.0, radius: int = 2,
-                seed: int = 0, surface: str = "random", step: float = 0.12) -> SyntheticWindow:
-    """Exact static window: ``n`` keyframes on an ``h x w`` grid with grid focal ``focal``.
+                seed: int = 0, surface: str = "random", step: float = 0.12,
+                principal_offset: tuple[float, float] = (0.0, 0.0)) -> SyntheticWindow:
+    """Exact static window: ``n`` keyframes on an ``h x w`` grid with grid focal ``focal``, the principal point
+    ``principal_offset`` grid px from the grid's centre.
 
     ``surface="random"``: an independent smooth depth map per keyframe (flow targets are still exact, but the
     keyframes do not see one common surface); ``surface="room"``: the inside of a box room (one consistent
@@ -90,7 +92,8 @@ def make_window(n: int = 6, h: int = 24, w: int = 32, focal: float = 28.0, radiu
     """
     gen = torch.Generator().manual_seed(seed)
     poses = trajectory(n, gen, step=step)
-    intr = torch.tensor([focal, focal, (w - 1) / 2, (h - 1) / 2], dtype=torch.float64)
+    intr = torch.tensor([focal, focal, (w - 1) / 2 + principal_offset[0], (h - 1) / 2 + principal_offset[1]],
+                        dtype=torch.float64)
     if surface == "random":
         disp = 1 / smooth_depth(n, h, w, gen)
     elif surface == "room":

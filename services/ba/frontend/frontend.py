@@ -48,7 +48,7 @@ class Frontend(Refinement):
         self.frames = FramePoses(params.motion)
         self.initialised = False
         self.metric = False
-        self._focal = 0.0
+        self._published = np.zeros(4)  # the grid intrinsics the last update reported
         self._size = (0, 0)
         self._calibrated = False  # the multi-start focal calibration ran (start.calibrate_focal)
         self._live = False  # the newest keyframe came from a real-time stream
@@ -222,7 +222,7 @@ class Frontend(Refinement):
             self.graph = KeyframeGraph(grid_intrinsics(kf.intrinsics), hw, self.params.flow, self.device,
                                        self.params.focal_range, self.params.max_step_growth)
             self._size = (width, height)
-            self._focal = float(self.graph.intrinsics[0])
+            self._published = self.graph.intrinsics.cpu().numpy().copy()
         elif (width, height) != self._size:
             raise ValueError(f"keyframe {kf.seq}: working size {width}x{height} differs from {self._size}")
         elif kf.seq <= self.graph.seqs[-1]:
@@ -336,13 +336,14 @@ class Frontend(Refinement):
         anchors = {g.seqs[k] for k in updated}
         frame_seqs = list(self.frames.frames) if every_frame else self.frames.anchored_to(anchors) + aligned
         poses = pose_update(g, self.frames, sorted(set(frame_seqs)) + sorted(anchors))
-        return Update(graph_update(g, updated, self.metric), poses, self._focal_changed())
+        return Update(graph_update(g, updated, self.metric), poses, self._intrinsics_changed())
 
-    def _focal_changed(self) -> bool:
-        """Whether the focal moved since the last update said so."""
-        focal = float(self.graph.intrinsics[0])
-        changed = abs(focal - self._focal) > 1e-6 * abs(self._focal)
-        self._focal = focal
+    def _intrinsics_changed(self) -> bool:
+        """Whether the focal or the principal point moved (by a millionth of the focal) since the last update
+        said so."""
+        now = self.graph.intrinsics.cpu().numpy().copy()
+        changed = bool(np.abs(now - self._published).max() > 1e-6 * abs(self._published[0]))
+        self._published = now
         return changed
 
     @property

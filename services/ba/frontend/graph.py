@@ -56,6 +56,8 @@ class KeyframeGraph:
                  device: torch.device, focal_range: tuple[float, float] = (0.36, 1.75), max_step_growth: float = 4.0):
         self.intrinsics = grid_intrinsics.to(device, torch.float64)  # (4,) fx, fy, cx, cy of the grid
         self.first_focal = float(grid_intrinsics[0])
+        self.first_principal = (float(grid_intrinsics[2]), float(grid_intrinsics[3]))  # where the principal point's
+        # prior holds it (BAParams.principal_point_sigma)
         self.focal_range = focal_range  # BA keeps the focal inside this range of the first guess
         self.grid_hw = grid_hw
         self.flow_params = flow
@@ -255,7 +257,8 @@ class KeyframeGraph:
         self.jumped_seq = None
         try:
             bounds = (self.focal_range[0] * self.first_focal, self.focal_range[1] * self.first_focal)
-            result = run_ba(start, BAProblem(ii, jj, targets, conf, codes, prior, mask, bounds), params, should_stop)
+            problem = BAProblem(ii, jj, targets, conf, codes, prior, mask, bounds, self.first_principal)
+            result = run_ba(start, problem, params, should_stop)
         except (RuntimeError, IndexError) as exc:  # a degenerate window (singular or non-finite): keep its state
             logger.warning("BA failed; window state kept", extra={"keyframes": len(window), "error": str(exc)})
             return None

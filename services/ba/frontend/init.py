@@ -235,6 +235,7 @@ def calibrate_focal(graph: KeyframeGraph, params: InitParams, ba_params: BAParam
     for ratio in () if only_undetermined and determined else ratios:
         graph.intrinsics = graph.intrinsics.clone()
         graph.intrinsics[0], graph.intrinsics[1] = graph.first_focal * ratio, graph.first_focal * ratio * aspect
+        graph.intrinsics[2:] = graph.intrinsics.new_tensor(graph.first_principal)  # each restart from the guess
         cost = start_map(graph, params, ba_params, motion_params, force=True)
         focal = float(graph.intrinsics[0])
         if cost is not None and cost < best[0] and low * 1.02 < focal < high / 1.02:

@@ -90,8 +90,10 @@ class FrontendParams:
     init: InitParams = field(default_factory=InitParams)
     motion: MotionParams = field(default_factory=MotionParams)
     relocalise: RelocaliseParams = field(default_factory=RelocaliseParams)
-    ba: BAParams = field(default_factory=lambda: BAParams(iterations=3, optimise_focal=True))  # per new keyframe
-    global_ba: BAParams = field(default_factory=lambda: BAParams(iterations=10, optimise_focal=True))  # end
+    ba: BAParams = field(default_factory=lambda: BAParams(iterations=3, optimise_focal=True,
+                                                          optimise_principal_point=True))  # per new keyframe
+    global_ba: BAParams = field(default_factory=lambda: BAParams(iterations=10, optimise_focal=True,
+                                                                 optimise_principal_point=True))  # end
     global_ba_s: float = 0.0  # the end-of-stream BA stops before an iteration that would end past this many
     # seconds (refinement.time_bound; 0: runs its iterations): end-of-stream work bounded by time, whatever the window holds
     background_ba_every: int = 10  # a lossless stream's mapping, when idle, runs the end-of-stream BA over every

@@ -59,7 +59,7 @@ class Refinement:
             self._global_ba(self._end_bound_s(), self._settle_span())
         logger.info("end of stream: keyframes final", extra={"keyframes": len(g),
                                                              "global_ba_s": round(time.monotonic() - began, 2)})
-        return Update(graph_update(g, list(range(len(g))), self.metric), None, self._focal_changed())
+        return Update(graph_update(g, list(range(len(g))), self.metric), None, self._intrinsics_changed())
 
     def solve_frames(self) -> Update:
         """End of stream, second half (after :meth:`settle_keyframes`): the frames not aligned yet aligned, those
