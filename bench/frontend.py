@@ -151,8 +151,7 @@ def run_frontend(frames: list[SourceFrame], focal: float | None = None,
     final = (Intrinsics(*(float(v) for v in frontend.intrinsics)).scaled(1 / size.scale_x, 1 / size.scale_y)
              if frontend.graph is not None else start)
     return FrontendRun(latest, first, final.fx, start.fx, (final.cx, final.cy), n_kf, graph_kf, ba_seconds,
-                       finish_seconds,
-                       time.perf_counter() - t_start, frontend)
+                       finish_seconds, time.perf_counter() - t_start, frontend)
 
 
 def main() -> None:
