@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from services.ba.core import ba, embedding, schur, se3, synthetic
+from services.ba.core import ba, embedding, intrinsics, schur, se3, synthetic
 from services.ba.core.params import BAParams, RobustParams
 
 L2 = RobustParams(use_ark=False, fixed_alpha=2.0)
@@ -216,7 +216,7 @@ def test_schur_step_equals_dense_solve_with_a_landmark_many_edges_reach():
 def _assert_schur_step_equals_dense_solve(state, problem, params):
     _, _, j_cam, j_disp, residual, weight, eq = _rows(state, problem, params)
     n, p = state.disparity.shape[0], 48
-    free = ba._free_camera_indices(n, params, None)
+    free = intrinsics.free_camera_indices(n, params, None)
     zeros = torch.zeros(n, p, dtype=torch.float64)
     lm, eps = 1e-2, 1e-9
     n_intr = j_cam.shape[-1] - 6
@@ -244,8 +244,8 @@ def _assert_schur_step_equals_dense_solve(state, problem, params):
         h[at, at] += prior[1]
         g[at] += prior[2]
     dense = torch.linalg.solve(h + torch.diag(lm * torch.diagonal(h) + eps), g)
-    intrinsics = [step.focal[None]] + ([step.principal_point] if n_intr == 3 else [])
-    got = torch.cat([torch.cat([step.poses.reshape(-1), *intrinsics])[free], step.disparity.reshape(-1)])
+    intrinsic_steps = [step.focal[None]] + ([step.principal_point] if n_intr == 3 else [])
+    got = torch.cat([torch.cat([step.poses.reshape(-1), *intrinsic_steps])[free], step.disparity.reshape(-1)])
     torch.testing.assert_close(got, dense, rtol=1e-6, atol=1e-9)
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import torch
 
-from services.ba.core import ba, schur, synthetic
+from services.ba.core import ba, intrinsics, schur, synthetic
 from services.ba.core.params import BAParams, RobustParams
 
 PARAMS = BAParams(optimise_focal=True, compute_dtype="float64", robust=RobustParams(use_ark=False, fixed_alpha=2.0))
@@ -27,7 +27,7 @@ def _badly_conditioned():
 
 
 def _solve(eq, problem, n):
-    free = ba._free_camera_indices(n, PARAMS, None)
+    free = intrinsics.free_camera_indices(n, PARAMS, None)
     p = eq.j_disp.shape[-1]
     zeros = torch.zeros(n, p, dtype=torch.float64)
     step = schur.solve(eq, problem.ii, problem.jj, n, free, PARAMS.lm_init, PARAMS.pose_eps, PARAMS.disp_eps,

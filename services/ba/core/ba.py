@@ -30,7 +30,7 @@ from typing import Callable, Iterator, NamedTuple
 import torch
 
 from services.ba.core import ark as ark_codes
-from services.ba.core import embedding, projective, robust, schur, se3
+from services.ba.core import embedding, intrinsics, projective, robust, schur, se3
 from services.ba.core.params import BAParams
 
 logger = logging.getLogger(__name__)
@@ -153,7 +153,8 @@ def _edge_residuals(state: BAState, prep: _Prepared, params: BAParams, with_jac:
     n, h, w = state.disparity.shape
     disp = state.disparity.reshape(n, -1)[prep.ii].to(prep.targets.dtype)
     rp = projective.reproject_planes(state.poses[prep.ii], state.poses[prep.jj], disp, prep.pixels,
-                                     state.intrinsics, with_jac, with_jac and _estimates_principal_point(params))
+                                     state.intrinsics, with_jac,
+                                     with_jac and intrinsics.estimates_principal_point(params))
     flow = prep.targets - rp.coords
     flow_w = prep.confidence * rp.valid
     embed = None
@@ -218,21 +219,6 @@ def _sliced_frozen(frozen: _Frozen, edges: slice) -> _Frozen:
     return _Frozen(frozen.alpha[edges], kern, frozen.embed_weight[edges])
 
 
-def _estimates_principal_point(params: BAParams) -> bool:
-    return params.optimise_focal and params.optimise_principal_point
-
-
-def _principal_prior(state: BAState, centre: torch.Tensor, params: BAParams):
-    """The principal point's Gaussian prior at ``state``: (camera indices past the poses, diagonal, gradient,
-    energy), or None when it is not estimated."""
-    if not _estimates_principal_point(params):
-        return None
-    diff = state.intrinsics[2:] - centre
-    weight = 1.0 / params.principal_point_sigma**2
-    return (torch.tensor([1, 2], device=diff.device), torch.full_like(diff, weight), -weight * diff,
-            float(0.5 * weight * (diff**2).sum()))
-
-
 def _prior_terms(state: BAState, problem: BAProblem, params: BAParams):
     n = state.disparity.shape[0]
     if problem.disp_prior is None or params.alpha_disp <= 0:
@@ -255,17 +241,13 @@ def _energy(res: _Residuals, params: BAParams, frozen: _Frozen) -> float:
 
 
 def _cost(state: BAState, prep: _Prepared, problem: BAProblem, params: BAParams, frozen: _Frozen,
-          centre: torch.Tensor) -> float:
+          guess: torch.Tensor) -> float:
     """The energy at a trial ``state``; in a problem linearised in slices, summed a slice at a time (a trial's
     residuals are only ever summed)."""
     energy = sum(_energy(_edge_residuals(state, _edges(prep, edges), params, False), params,
                          _sliced_frozen(frozen, edges)) for edges in _edge_slices(len(prep.ii), params))
-    return energy + _prior_terms(state, problem, params)[2] + _principal_energy(state, centre, params)
-
-
-def _principal_energy(state: BAState, centre: torch.Tensor, params: BAParams) -> float:
-    prior = _principal_prior(state, centre, params)
-    return 0.0 if prior is None else prior[3]
+    return energy + _prior_terms(state, problem, params)[2] + intrinsics.principal_energy(state.intrinsics, guess,
+                                                                                          params)
 
 
 def _normal_equations(res: _Residuals, params: BAParams, frozen: _Frozen) -> schur.NormalEquations:
@@ -302,24 +284,15 @@ def _linearised(state: BAState, prep: _Prepared, params: BAParams, frozen: _Froz
 def _apply(state: BAState, step: schur.Step, params: BAParams,
            focal_bounds: tuple[float, float] | None = None) -> BAState:
     """``state`` moved by ``step``: poses retracted (the gauge's kept exactly), disparities clamped above
-    ``min_disparity``, the focal inside ``focal_bounds`` and the principal point inside its range."""
+    ``min_disparity``, the intrinsics inside their bounds (:func:`services.ba.core.intrinsics.apply_step`)."""
     poses = se3.retract(state.poses, step.poses)
     # the gauge's step is zero, but retract's re-orthonormalisation would still move it by round-off, and with
     # it every "fixed" pose a background BA is meant to leave exactly where it was
     fixed = min(params.fixed_poses, len(poses))
     poses[:fixed] = state.poses[:fixed]
     disp = (state.disparity + step.disparity.view_as(state.disparity)).clamp_min(params.min_disparity)
-    intr = state.intrinsics.clone()
-    fx = intr[0] + step.focal
-    if focal_bounds is not None:
-        fx = fx.clamp(*focal_bounds)
-    intr[:2] = intr[:2] * (fx / intr[0])  # the step is in fx; fy keeps the aspect fy/fx
-    if _estimates_principal_point(params):
-        h, w = state.disparity.shape[1:]
-        size = intr.new_tensor([w, h])
-        low = (size - 1) / 2 - params.principal_point_range * size
-        intr[2:] = torch.minimum(torch.maximum(intr[2:] + step.principal_point.to(intr.dtype), low),
-                                 size - 1 - low)
+    intr = intrinsics.apply_step(state.intrinsics, step.focal, step.principal_point,
+                                 tuple(state.disparity.shape[1:]), params, focal_bounds)
     return BAState(poses, disp, intr)
 
 
@@ -335,14 +308,6 @@ def _rescale(state: BAState, anchor: int, other: int, distance: float) -> BAStat
     return BAState(poses, state.disparity / s, state.intrinsics)
 
 
-def _free_camera_indices(n_kf: int, params: BAParams, device) -> torch.Tensor:
-    free = torch.arange(6 * min(params.fixed_poses, n_kf), 6 * n_kf, device=device)
-    if params.optimise_focal:
-        intrinsics = [0, 1, 2] if _estimates_principal_point(params) else [0]
-        free = torch.cat([free, 6 * n_kf + torch.tensor(intrinsics, device=device)])
-    return free
-
-
 def run_ba(state: BAState, problem: BAProblem, params: BAParams,
            should_stop: Callable[[], bool] | None = None) -> BAResult:
     """Run ``params.iterations`` LM iterations; see the module docstring for the energy and gauge.
@@ -350,7 +315,7 @@ def run_ba(state: BAState, problem: BAProblem, params: BAParams,
     time bound; LM's accepted states only ever lower the energy, so any prefix is a valid result)."""
     _check(state, problem)
     n, h, w = state.disparity.shape
-    free = _free_camera_indices(n, params, state.poses.device)
+    free = intrinsics.free_camera_indices(n, params, state.poses.device)
     has_prior = problem.disp_prior is not None and params.alpha_disp > 0
     distance = float((state.poses[1, :3, 3] - state.poses[0, :3, 3]).norm()) if n > 1 else 0.0
     # no anchor when cameras 0 and 1 coincide (e.g. at initialisation): the damping alone holds the scale
@@ -361,23 +326,24 @@ def run_ba(state: BAState, problem: BAProblem, params: BAParams,
     res = _residuals(state, prep, params, with_jac=whole)
     ark = _ark(res, prep, params, None)
     frozen = _frozen(res, params, ark)
-    n_intrinsics = 3 if _estimates_principal_point(params) else 1
-    centre = (state.intrinsics[2:].clone() if problem.principal_point is None
-              else state.intrinsics.new_tensor(problem.principal_point))
-    prior_cost = _prior_terms(state, problem, params)[2] + _principal_energy(state, centre, params)
+    guess = (state.intrinsics[2:].clone() if problem.principal_point is None
+             else state.intrinsics.new_tensor(problem.principal_point))
+    prior_cost = _prior_terms(state, problem, params)[2] + intrinsics.principal_energy(state.intrinsics, guess,
+                                                                                       params)
     costs = [_energy(res, params, frozen) + prior_cost]
     for it in range(params.iterations):
         prior_h, prior_g, _ = _prior_terms(state, problem, params)
         if params.disp_rel_damping > 0:  # damping, not energy: it slows what no flow constrains (BAParams)
             prior_h = prior_h + params.disp_rel_damping / state.disparity.reshape(n, -1).to(prior_h.dtype) ** 2
-        principal = _principal_prior(state, centre, params)
+        principal = intrinsics.principal_prior(state.intrinsics, guess, params)
+        camera_prior = None if principal is None else (6 * n + principal.indices, principal.diagonal,
+                                                       principal.gradient)
         step = schur.solve(_linearised(state, prep, params, frozen, res), prep.ii, prep.jj, n, free, lm,
-                           params.pose_eps, params.disp_eps, prior_h, prior_g, n_intrinsics,
-                           None if principal is None else (6 * n + principal[0], *principal[1:3]))
+                           params.pose_eps, params.disp_eps, prior_h, prior_g, intrinsics.count(params), camera_prior)
         trial = _apply(state, step, params, problem.focal_bounds)
         if scale_anchor:
             trial = _rescale(trial, 0, 1, distance)
-        trial_cost = _cost(trial, prep, problem, params, frozen, centre)
+        trial_cost = _cost(trial, prep, problem, params, frozen, guess)
         logger.debug("BA iter %d cost %.6g -> %.6g (lm %.1e)", it, costs[-1], trial_cost, lm)
         if trial_cost < costs[-1]:
             state, lm = trial, lm * params.lm_down
@@ -387,7 +353,7 @@ def run_ba(state: BAState, problem: BAProblem, params: BAParams,
             frozen = _frozen(res, params, ark)
             decrease = costs[-1] - trial_cost
             costs.append(_energy(res, params, frozen) + _prior_terms(state, problem, params)[2]
-                         + _principal_energy(state, centre, params))
+                         + intrinsics.principal_energy(state.intrinsics, guess, params))
             if decrease <= params.rel_tol * costs[0]:
                 break
         else:
