@@ -65,6 +65,25 @@ def test_a_state_restored_from_its_checkpoint_continues_exactly_like_the_uninter
     assert other.load(resumed.frontend.device) is None
 
 
+def test_a_checkpoint_of_the_version_before_the_principal_point_resumes(tmp_path):
+    """Written before the principal point was refined: no ``first_principal`` in the graph (the principal point was
+    held at its first guess, so that is where it still is), and ``_focal`` where the frontend now keeps
+    ``_published``. A ba upgraded mid-stream resumes from it and ends the stream."""
+    cfg, msgs, old = _state_after(14, rendered=25, width=256)
+    held = tuple(float(v) for v in old.frontend.graph.intrinsics[2:])
+    del old.frontend.graph.first_principal, old.frontend._published
+    old.frontend._focal = float(old.frontend.graph.intrinsics[0])
+    Checkpointer(str(tmp_path), STREAM, "s1", period_s=0.0).save(old)
+    resumed = service.build_state(cfg)
+    assert recovery.resume(resumed, Checkpointer(str(tmp_path), STREAM, "s1", period_s=2.0), cfg) == 13
+    assert resumed.frontend.graph.first_principal == held
+    for msg in msgs[14:]:
+        out = service.handle(resumed, msg, cfg)
+    final = _final_poses(out)
+    assert final.final and final.frame_seqs.tolist() == list(range(25))
+    assert np.isfinite(final.poses).all()
+
+
 def test_landmarks_survive_a_restart(tmp_path):
     # 4 keyframes held, so the stream's first keyframes leave early and some stay as landmarks
     cfg = _settings().model_copy(update={"window": 3, "keep_keyframes": 4, "landmark_keyframes": 2})

@@ -40,6 +40,8 @@ class Frontend(Refinement):
 
     _supports: tuple[float, ...] = ()  # the grid shares the flows of the last keyframes kept supported (_lost_support);
     # a class default so that a ba checkpoint of an earlier version, which lacks it, restores
+    _published: np.ndarray = np.zeros(4)  # the grid intrinsics the last update reported (_intrinsics_changed); a
+    # class default for the same reason (never changed in place: each update assigns a new array)
 
     def __init__(self, params: FrontendParams = FrontendParams(), device: torch.device | str = "cpu"):
         self.params = params
@@ -48,7 +50,7 @@ class Frontend(Refinement):
         self.frames = FramePoses(params.motion)
         self.initialised = False
         self.metric = False
-        self._published = np.zeros(4)  # the grid intrinsics the last update reported
+        self._published = np.zeros(4)
         self._size = (0, 0)
         self._calibrated = False  # the multi-start focal calibration ran (start.calibrate_focal)
         self._live = False  # the newest keyframe came from a real-time stream

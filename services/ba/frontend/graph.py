@@ -95,6 +95,9 @@ class KeyframeGraph:
 
     def __setstate__(self, state: dict) -> None:
         state.setdefault("landmarks", set())  # a checkpoint written before landmarks existed
+        if "first_principal" not in state:  # ... or before the principal point was refined: it was held at its
+            # first guess, so that is where the intrinsics still have it
+            state["first_principal"] = tuple(float(v) for v in state["intrinsics"][2:])
         self.__dict__.update(state)
 
     def index(self, seq: int) -> int:
