@@ -28,7 +28,7 @@ import torch
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from robustness import REAL, cached_profile, default_cache, default_data, parse_size, profile_names  # noqa: E402
+from robustness import REAL, add_sequence_arguments, cached_profile, profile_names  # noqa: E402
 
 from services.ba.core import flow as core_flow  # noqa: E402
 from services.ba.core.ba import BAProblem, BAState, run_ba  # noqa: E402
@@ -99,12 +99,7 @@ def main() -> None:
     parser.add_argument("--gap", type=int, default=3, help="frames between a window's keyframes")
     parser.add_argument("--every", type=int, default=10, help="frames between window starts")
     parser.add_argument("--principal-point", action="store_true", help="free the principal point too")
-    parser.add_argument("--size", type=parse_size, default=(512, 384), help="synthetic frame size, e.g. 640x480")
-    parser.add_argument("--frames", type=int, default=120, help="frames per synthetic profile (30 Hz)")
-    parser.add_argument("--cache", type=Path, default=default_cache(), help="rendered profiles (image folders)")
-    parser.add_argument("--data", type=Path, default=default_data(), help="folder with the real sequences")
-    parser.add_argument("--threads", type=int, default=1, help="torch threads")
-    parser.add_argument("--markdown", action="store_true", help="print the table as markdown")
+    add_sequence_arguments(parser)
     args = parser.parse_args()
     if args.keyframes < 2 or args.gap < 1 or args.every < 1:
         parser.error("--keyframes must be >= 2, --gap and --every >= 1")

@@ -236,17 +236,23 @@ def parse_size(text: str) -> tuple[int, int]:
     return max(a, b), min(a, b)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--profiles", default="synthetic,real",
-                        help=f"comma-separated names or groups (synthetic: {', '.join(SYNTHETIC)}; "
-                             f"real: {', '.join(REAL)})")
+def add_sequence_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options that say where the profiles and real sequences come from, and how results are printed (shared
+    with bench/focal_evidence.py)."""
     parser.add_argument("--size", type=parse_size, default=(512, 384), help="synthetic frame size, e.g. 640x480")
     parser.add_argument("--frames", type=int, default=120, help="frames per synthetic profile (30 Hz)")
     parser.add_argument("--cache", type=Path, default=default_cache(), help="rendered profiles (image folders)")
     parser.add_argument("--data", type=Path, default=default_data(), help="folder with the real sequences")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     parser.add_argument("--markdown", action="store_true", help="print the table as markdown")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--profiles", default="synthetic,real",
+                        help=f"comma-separated names or groups (synthetic: {', '.join(SYNTHETIC)}; "
+                             f"real: {', '.join(REAL)})")
+    add_sequence_arguments(parser)
     args = parser.parse_args()
     names = profile_names(args.profiles)
     torch.set_num_threads(args.threads)
