@@ -32,7 +32,7 @@ from robustness import REAL, add_sequence_arguments, cached_profile, profile_nam
 
 from services.ba.core import flow as core_flow  # noqa: E402
 from services.ba.core.ba import BAProblem, BAState, run_ba  # noqa: E402
-from services.ba.core.params import BAParams  # noqa: E402
+from services.ba.core.params import BAParams, FlowParams  # noqa: E402
 from services.ba.frontend.params import focal_ba  # noqa: E402
 from services.ba.settings import BaSettings  # noqa: E402
 from services.common.config import LogSettings  # noqa: E402
@@ -47,7 +47,7 @@ DIVERGED_PCT = 20.0  # a window further than this from the truth found no focal 
 
 
 def window_focal(images: list[np.ndarray], world_from_cam: np.ndarray, grid: Intrinsics, params: BAParams,
-                 flow_params) -> torch.Tensor:
+                 flow_params: FlowParams) -> torch.Tensor:
     """Grid intrinsics (4,) BA settles on over ``images`` (working size) held at ``world_from_cam`` (N, 4, 4)."""
     n = len(images)
     edges = [(i, j) for i in range(n) for j in range(n) if i != j and abs(i - j) <= EDGE_REACH]
@@ -61,7 +61,7 @@ def window_focal(images: list[np.ndarray], world_from_cam: np.ndarray, grid: Int
     return run_ba(state, problem, dataclasses.replace(params, fixed_poses=n)).state.intrinsics
 
 
-def sequence_errors(source: str, keyframes: int, gap: int, every: int, params: BAParams, flow_params,
+def sequence_errors(source: str, keyframes: int, gap: int, every: int, params: BAParams, flow_params: FlowParams,
                     name: str) -> np.ndarray:
     """Focal error (%) of every window of ``source`` (an image folder with ground truth and intrinsics)."""
     truth, gt = source_intrinsics(source), source_groundtruth(source)
