@@ -10,10 +10,9 @@ mapper hands over a newer keyframe, so tracking never reads state that mapping i
 
 When mapping falls behind (a live camera on a shared CPU), waiting for its next keyframe would leave tracking
 aligned to a keyframe ever further back until the flow breaks. So while mapping does not hold the keyframe
-before the newest, a keyframe that tracking itself aligned is promoted to reference, its depth the grid disparity
-of mapping's newest keyframe carried over by the tracked motion (:func:`propagate_disparity`, as SVO and LSD-SLAM
-carry depth to a new keyframe; never from one promoted keyframe to the next, where its error compounds); mapping's
-result replaces it once mapping is at most one keyframe behind.
+before the newest, a keyframe that tracking itself aligned is promoted to reference, its depth the reference's
+grid disparity carried over by the tracked motion (:func:`propagate_disparity`, as SVO and LSD-SLAM carry depth
+to a new keyframe); mapping's result replaces it once mapping is at most one keyframe behind.
 
 numpy and OpenCV only: the tracker runs in a process of its own (services/ba/tracking_process.py), which would
 hold ~200 MB more for importing torch. References from mapping's graph are read on the host
@@ -214,10 +213,7 @@ class Tracker:
         if self._mapped is not None and self._mapped.seq >= self._oldest_kept():
             return
         ref = self.reference
-        # depth from mapping's newest keyframe, not the carried-over one's: carried from keyframe to keyframe it
-        # compounds, and the chain's scale with it (KITTI 07, mapping 5 keyframes behind: first poses 4.1 -> 1.7 m)
-        source = self._mapped if self._mapped is not None else ref
-        disparity, known = propagate_disparity(source.pose, pose, source.disparity, source.intrinsics)
+        disparity, known = propagate_disparity(ref.pose, pose, ref.disparity, ref.intrinsics)
         self._head = Reference(seq, stamp, pose, disparity, ref.intrinsics, image, (ref.stamp, ref.pose), known,
                                ref.speed)
         self._use(self._head)
