@@ -37,6 +37,7 @@ def test_free_indices_and_the_prior_follow_what_is_estimated():
     assert intrinsics.principal_prior(START, START[2:], _params(False)) is None
     guess = START[2:] - torch.tensor([2.0, -1.0], dtype=torch.float64)
     prior = intrinsics.principal_prior(START, guess, BAParams(optimise_focal=True, optimise_principal_point=True,
-                                                                 principal_point_sigma=0.5))
+                                                                 principal_point_sigma=0.5), n_kf=3)
+    assert prior.indices.tolist() == [19, 20]  # after the 3 poses' 18 columns and the focal
     torch.testing.assert_close(prior.gradient, torch.tensor([-8.0, 4.0], dtype=torch.float64))
     assert prior.energy == 0.5 * 4.0 * (4.0 + 1.0)

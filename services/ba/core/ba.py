@@ -32,6 +32,7 @@ import torch
 from services.ba.core import ark as ark_codes
 from services.ba.core import embedding, intrinsics, projective, robust, schur, se3
 from services.ba.core.params import BAParams
+from services.ba.core.static_weight import static_weight
 
 logger = logging.getLogger(__name__)
 
@@ -66,7 +67,7 @@ class BAResult(NamedTuple):
     state: BAState
     costs: list[float]  # energy before the first and after every accepted iteration
     edge_weight: torch.Tensor  # (E, h, w) robust (ARK) weight in [0, 1] at the final state, 0 where unused
-    static_weight: torch.Tensor  # (N, h, w) in [0, 1]: probability each pixel is static (see _static_weight)
+    static_weight: torch.Tensor  # (N, h, w) in [0, 1]: probability each pixel is static (core.static_weight)
     alpha: torch.Tensor  # (E, h, w) robust shape used in the last iteration
 
 
@@ -246,8 +247,12 @@ def _cost(state: BAState, prep: _Prepared, problem: BAProblem, params: BAParams,
     residuals are only ever summed)."""
     energy = sum(_energy(_edge_residuals(state, _edges(prep, edges), params, False), params,
                          _sliced_frozen(frozen, edges)) for edges in _edge_slices(len(prep.ii), params))
-    return energy + _prior_terms(state, problem, params)[2] + intrinsics.principal_energy(state.intrinsics, guess,
-                                                                                          params)
+    return energy + _prior_energy(state, problem, params, guess)
+
+
+def _prior_energy(state: BAState, problem: BAProblem, params: BAParams, guess: torch.Tensor) -> float:
+    """The priors' energy at ``state``: the disparity prior's and the principal point's (pulled to ``guess``)."""
+    return _prior_terms(state, problem, params)[2] + intrinsics.principal_energy(state.intrinsics, guess, params)
 
 
 def _normal_equations(res: _Residuals, params: BAParams, frozen: _Frozen) -> schur.NormalEquations:
@@ -328,16 +333,13 @@ def run_ba(state: BAState, problem: BAProblem, params: BAParams,
     frozen = _frozen(res, params, ark)
     guess = (state.intrinsics[2:].clone() if problem.principal_point is None
              else state.intrinsics.new_tensor(problem.principal_point))
-    prior_cost = _prior_terms(state, problem, params)[2] + intrinsics.principal_energy(state.intrinsics, guess,
-                                                                                       params)
-    costs = [_energy(res, params, frozen) + prior_cost]
+    costs = [_energy(res, params, frozen) + _prior_energy(state, problem, params, guess)]
     for it in range(params.iterations):
         prior_h, prior_g, _ = _prior_terms(state, problem, params)
         if params.disp_rel_damping > 0:  # damping, not energy: it slows what no flow constrains (BAParams)
             prior_h = prior_h + params.disp_rel_damping / state.disparity.reshape(n, -1).to(prior_h.dtype) ** 2
-        principal = intrinsics.principal_prior(state.intrinsics, guess, params)
-        camera_prior = None if principal is None else (6 * n + principal.indices, principal.diagonal,
-                                                       principal.gradient)
+        principal = intrinsics.principal_prior(state.intrinsics, guess, params, n)
+        camera_prior = None if principal is None else principal[:3]  # (indices, diagonal, gradient)
         step = schur.solve(_linearised(state, prep, params, frozen, res), prep.ii, prep.jj, n, free, lm,
                            params.pose_eps, params.disp_eps, prior_h, prior_g, intrinsics.count(params), camera_prior)
         trial = _apply(state, step, params, problem.focal_bounds)
@@ -352,8 +354,7 @@ def run_ba(state: BAState, problem: BAProblem, params: BAParams,
             ark = _ark(res, prep, params, ark)
             frozen = _frozen(res, params, ark)
             decrease = costs[-1] - trial_cost
-            costs.append(_energy(res, params, frozen) + _prior_terms(state, problem, params)[2]
-                         + intrinsics.principal_energy(state.intrinsics, guess, params))
+            costs.append(_energy(res, params, frozen) + _prior_energy(state, problem, params, guess))
             if decrease <= params.rel_tol * costs[0]:
                 break
         else:
@@ -363,7 +364,7 @@ def run_ba(state: BAState, problem: BAProblem, params: BAParams,
         if should_stop is not None and it + 1 < params.iterations and should_stop():
             break
     edge_w = _edge_weight(res, frozen, params)
-    static = _static_weight(res, ark, problem, params, n).view(n, h, w)
+    static = static_weight(res.flow_norm, res.flow_w, problem.ii, n, params.robust, ark).view(n, h, w)
     return BAResult(state, costs, edge_w.view(-1, h, w), static, frozen.alpha.reshape(-1, h, w).contiguous())
 
 
@@ -371,36 +372,3 @@ def _edge_weight(res: _Residuals, frozen: _Frozen, params: BAParams) -> torch.Te
     """(E, P) robust IRLS weight c^2 psi(r)/r in [0, 1] of the kernel in use; 0 where the edge is unused."""
     c = params.robust.scale
     return c**2 * robust.weight(res.flow_norm, frozen.kernel, c) * (res.flow_w > 0).to(res.flow.dtype)
-
-
-def _static_weight(res: _Residuals, ark: ark_codes.ArkCosine | None, problem: BAProblem, params: BAParams,
-                   n: int) -> torch.Tensor:
-    """(N, P) probability that each keyframe pixel is static, from the evidence of all its out-edges.
-
-    With codes (ARK): the ARK sigmoid of the confidence-weighted mean cosine similarity over the edges,
-    ``sigmoid((mean cs - kappa) / tau)`` (summing the per-edge log-odds ``(cs - kappa)/tau``: one view where the
-    pixel is occluded or lands on a label border does not outvote the others), times the mean flow weight the
-    dynamic kernel gives the pixel, ``c^2 psi_{alpha_dyn}(r)/r`` (a rigidly moving object whose codes still
-    agree, e.g. the inside of a large moved object, shows up only in its flow). Without codes: the mean
-    robust weight of the kernel in use. 1 (no evidence of motion) where no edge sees the pixel.
-    """
-    rob = params.robust
-    votes = res.flow_w
-    with_codes = ark is not None
-    if with_codes:
-        votes = votes * ark.valid
-        flow_w = rob.scale**2 * robust.weight(res.flow_norm, rob.alpha_dynamic, rob.scale)
-    else:
-        flow_w = rob.scale**2 * robust.weight(res.flow_norm, rob.fixed_alpha, rob.scale)
-    p = votes.shape[1]
-    total = torch.zeros(n, p, dtype=votes.dtype, device=votes.device).index_add_(0, problem.ii, votes)
-    seen = total > 0
-    denom = total.clamp_min(torch.finfo(votes.dtype).tiny)
-
-    def mean(values: torch.Tensor) -> torch.Tensor:
-        return torch.zeros_like(total).index_add_(0, problem.ii, votes * values) / denom
-
-    static = mean(flow_w)
-    if with_codes:
-        static = static * torch.sigmoid((mean(ark.cosine) - rob.kappa) / rob.tau)
-    return torch.where(seen, static, torch.ones_like(static))

@@ -38,19 +38,22 @@ def free_camera_indices(n_kf: int, params: BAParams, device) -> torch.Tensor:
 class PrincipalPrior(NamedTuple):
     """The principal point's Gaussian prior at one state, in the camera system's terms."""
 
-    indices: torch.Tensor  # (2,) its columns past the poses (add 6 N)
+    indices: torch.Tensor  # (2,) its columns in the camera system (6 N + 1, 6 N + 2)
     diagonal: torch.Tensor  # (2,) its Hessian
     gradient: torch.Tensor  # (2,) minus its energy's gradient
     energy: float
 
 
-def principal_prior(intrinsics: torch.Tensor, guess: torch.Tensor, params: BAParams) -> PrincipalPrior | None:
-    """The prior pulling (cx, cy) to ``guess`` at ``intrinsics``, or None when the principal point is held."""
+def principal_prior(intrinsics: torch.Tensor, guess: torch.Tensor, params: BAParams,
+                    n_kf: int = 0) -> PrincipalPrior | None:
+    """The prior pulling (cx, cy) to ``guess`` at ``intrinsics`` in a camera system of ``n_kf`` keyframes, or None
+    when the principal point is held."""
     if not estimates_principal_point(params):
         return None
     diff = intrinsics[2:] - guess
     weight = 1.0 / params.principal_point_sigma**2
-    return PrincipalPrior(torch.tensor([1, 2], device=diff.device), torch.full_like(diff, weight), -weight * diff,
+    return PrincipalPrior(6 * n_kf + torch.tensor([1, 2], device=diff.device), torch.full_like(diff, weight),
+                          -weight * diff,
                           float(0.5 * weight * (diff**2).sum()))
 
 

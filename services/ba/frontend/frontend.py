@@ -50,7 +50,6 @@ class Frontend(Refinement):
         self.frames = FramePoses(params.motion)
         self.initialised = False
         self.metric = False
-        self._published = np.zeros(4)
         self._size = (0, 0)
         self._calibrated = False  # the multi-start focal calibration ran (start.calibrate_focal)
         self._live = False  # the newest keyframe came from a real-time stream
