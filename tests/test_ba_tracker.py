@@ -208,3 +208,31 @@ def test_corrections_in_a_row_keep_every_pose_on_so3():
             tracker.set_reference(ref._replace(pose=nudged(ref.pose)))
     worst = max(off_so3(p) for p in [*tracker._promoted.values(), tracker.reference.pose, tracker.predict(10**12)])
     assert worst < 1e-9, worst
+
+
+def test_a_carried_over_chain_takes_mappings_scale_too():
+    """Mapping behind, and tracking's start depth 30 % too near (its reference's disparity / 0.7): the keyframes it
+    promotes and the frames after them move 0.7 of the true distance. Mapping's keyframe 3 then comes with the true
+    pose and depth. A rigid correction would leave the 0.3 shortfall of keyframes 3 -> 9 in the carried-over
+    reference; stretched by mapping's depth over tracking's at keyframe 3, the next frame is near the truth."""
+    world = synth.SynthWorld(synth.SynthConfig(n_frames=60, width=512, height=384, person=False, moved_chair=False))
+    tracker = Tracker(MotionParams(), TRACKING_FLOW)
+    start = _reference(world, 0)
+    tracker.set_reference(start._replace(disparity=start.disparity / 0.7))
+    for i in range(1, 10):
+        f = world.render(i)
+        out = tracker.track(i, f.t_ns, _grey(f.rgb, half=True))
+        assert out.ok
+        if i % 3 == 0:
+            tracker.promote(i, f.t_ns, _grey(f.rgb, half=False), out.pose)
+    assert tracker.reference.seq == 9
+    assert tracker._depth_scale(_reference(world, 3)) == pytest.approx(1 / 0.7, rel=0.1)
+    gap = float(np.linalg.norm(world.poses[9, :3, 3] - world.poses[3, :3, 3]))
+    tracker.set_reference(_reference(world, 3))
+    assert tracker.reference.seq == 9
+    head_off, _ = _errors(tracker.reference.pose, world.poses[9])
+    f = world.render(10)
+    trans, rot = _errors(tracker.track(10, f.t_ns, _grey(f.rgb, half=True)).pose, world.poses[10])
+    print(f"keyframes 3 -> 9 span {gap:.3f} m; after the correction keyframe 9 is {head_off:.4f} m off, "
+          f"frame 10 {trans:.4f} m")
+    assert gap > 0.1 and head_off < 0.1 * gap and trans < 0.1 * gap and rot < 0.5

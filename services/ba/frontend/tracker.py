@@ -70,6 +70,8 @@ class Tracked(NamedTuple):
 
 MAX_PROMOTED = 64  # keyframe poses tracking remembers, to correct its carried-over reference by mapping's
 MAX_EXTRAPOLATION = 8.0  # a prediction extends a motion at most this many times its own duration
+MIN_SCALE_CELLS = 0.1  # share of the grid tracking's carried depth must cover for its scale to be compared
+MAX_SCALE_FIX = 2.0  # one correction rescales tracking's chain by at most this factor (either way)
 
 
 def _extrapolate(t0: int, pose0: np.ndarray, t1: int, pose1: np.ndarray, stamp: int) -> np.ndarray:
@@ -152,6 +154,7 @@ class Tracker:
         self._ref_small: np.ndarray | None = None
         self._history: list[Tracked] = []  # the last two tracked frames (constant-velocity prediction)
         self._promoted: dict[int, np.ndarray] = {}  # keyframe seq -> world_from_cam tracking gave it
+        self._carried: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # promoted seq -> its carried (disparity, known)
         self._origin: tuple[np.ndarray, np.ndarray] | None = None  # first frame before the map: small grey, K
         self._origin_flow: np.ndarray | None = None  # the last flow from it (DIS's start for the next frame)
 
@@ -170,31 +173,63 @@ class Tracker:
 
     def _correct(self, ref: Reference) -> None:
         """Mapping refined keyframe ``ref`` that tracking had posed and carried depth past: the drift tracking
-        accumulated up to it is the difference of the two poses. The carried-over reference, the motion history
-        and the later promoted keyframes move by it, and the reference takes its depth afresh from ``ref``'s map
-        where that covers as much of it (DSO's coarse tracker likewise always tracks against the newest mapped
-        depth). Without it tracking stays a visual odometry for as long as mapping is behind (KITTI 07 live: 7 m)."""
+        accumulated up to it is the difference of the two poses, and, where tracking had carried depth to ``ref``
+        itself, of the two depths' scales. The carried-over reference, the motion history and the later promoted
+        keyframes move by that similarity about ``ref`` (:meth:`_chain_fix`), and the reference takes its depth
+        afresh from ``ref``'s map where that covers as much of it (DSO's coarse tracker likewise always tracks
+        against the newest mapped depth). Without it tracking stays a visual odometry for as long as mapping is
+        behind (KITTI 07 live: 7 m)."""
         tracked = self._promoted.get(ref.seq)
         if tracked is None:
             return
-        # every product is pulled back onto SO(3): the promoted poses are multiplied by each correction's fix, and
-        # the next fix is computed from them, so rounding off SO(3) roughly doubled with every correction (1e-6 after
-        # 35 corrections in a row; at the end of a live KITTI stream, mapping far behind, a prediction had det R < 0)
-        fix = se3.orthonormalize(ref.pose @ se3.inverse(tracked))
+        scale = self._depth_scale(ref)
+        fix = self._chain_fix(ref.pose, tracked, scale)
         head = self._head
-        pose = se3.orthonormalize(fix @ head.pose)
-        previous = None if head.previous is None else (head.previous[0], se3.orthonormalize(fix @ head.previous[1]))
-        disparity, known = head.disparity, head.known
+        pose = fix(head.pose)
+        previous = None if head.previous is None else (head.previous[0], fix(head.previous[1]))
+        disparity, known = head.disparity / scale, head.known
         fresh, fresh_known = propagate_disparity(ref.pose, pose, ref.disparity, ref.intrinsics)
         if known is None or float(fresh_known.mean()) >= 0.8 * float(np.mean(known)):
             disparity, known = fresh, fresh_known
         self._head = head._replace(pose=pose, disparity=disparity, known=known, previous=previous,
                                    intrinsics=ref.intrinsics)
-        self._history = [t._replace(pose=se3.orthonormalize(fix @ t.pose)) for t in self._history]
-        self._promoted = {seq: (p if seq < ref.seq else se3.orthonormalize(fix @ p))
-                          for seq, p in self._promoted.items()}
+        self._history = [t._replace(pose=fix(t.pose)) for t in self._history]
+        self._promoted = {seq: (p if seq < ref.seq else fix(p)) for seq, p in self._promoted.items()}
         self._promoted[ref.seq] = ref.pose  # corrected now: the same reference again changes nothing
+        # older ones are behind mapping for good: mapping's references only move forward
+        self._carried = {seq: (d[0] / scale, d[1]) for seq, d in self._carried.items() if seq > ref.seq}
         self._use(self._head)
+
+    def _depth_scale(self, ref: Reference) -> float:
+        """Mapping's depth over tracking's at keyframe ``ref``: the median ratio over the cells tracking's carried
+        depth had a point in (1 when it carried none there, or too few cells). A chain of promoted keyframes carries
+        depth from one to the next, so its scale drifts from mapping's (KITTI 07 live: 0.85-3.05 over 20 frames);
+        a rigid correction would keep that drift in every pose after ``ref``."""
+        carried = self._carried.get(ref.seq)
+        if carried is None:
+            return 1.0
+        disparity, known = carried
+        cells = (known > 0) & (disparity > 0) & (ref.disparity > 0)
+        if cells.mean() < MIN_SCALE_CELLS:
+            return 1.0
+        ratio = float(np.median(disparity[cells] / ref.disparity[cells]))
+        return float(np.clip(ratio, 1.0 / MAX_SCALE_FIX, MAX_SCALE_FIX))
+
+    @staticmethod
+    def _chain_fix(mapped: np.ndarray, tracked: np.ndarray, scale: float):
+        """The similarity that takes tracking's pose of a keyframe, ``tracked``, to mapping's, ``mapped``, and
+        stretches every pose's offset from it by ``scale``: a function of a (4, 4) world_from_cam.
+
+        Every product is pulled back onto SO(3): the promoted poses are multiplied by each correction's fix, and the
+        next fix is computed from them, so rounding off SO(3) roughly doubled with every correction (1e-6 after 35
+        corrections in a row; at the end of a live KITTI stream, mapping far behind, a prediction had det R < 0)."""
+        from_tracked = se3.inverse(tracked)
+
+        def fix(pose: np.ndarray) -> np.ndarray:
+            rel = from_tracked @ pose
+            rel[:3, 3] *= scale
+            return se3.orthonormalize(mapped @ rel)
+        return fix
 
     def keyframe_seen(self, seq: int) -> None:
         """A keyframe went past tracking, posed or not: it counts towards how far behind mapping is."""
@@ -204,16 +239,18 @@ class Tracker:
     def promote(self, seq: int, stamp: int, image: np.ndarray, pose) -> None:
         """Keyframe ``seq`` was tracked to ``pose`` (``image``: (H, W) grey, working resolution). When mapping
         does not yet hold the keyframe before it, it becomes the reference, with the current reference's depth
-        carried over; otherwise mapping's reference stays (it is at most one keyframe back, and refined)."""
+        carried over; otherwise mapping's reference stays (it is at most one keyframe back, and refined). Either
+        way its pose and the depth tracking carried to it are kept, for mapping's correction (:meth:`_correct`)."""
         pose = as_numpy(pose)
         self.keyframe_seen(seq)
-        self._promoted[seq] = pose
-        if len(self._promoted) > MAX_PROMOTED:
-            self._promoted.pop(min(self._promoted))
-        if self._mapped is not None and self._mapped.seq >= self._oldest_kept():
-            return
         ref = self.reference
         disparity, known = propagate_disparity(ref.pose, pose, ref.disparity, ref.intrinsics)
+        self._promoted[seq], self._carried[seq] = pose, (disparity, known)
+        for kept in (self._promoted, self._carried):
+            if len(kept) > MAX_PROMOTED:
+                kept.pop(min(kept))
+        if self._mapped is not None and self._mapped.seq >= self._oldest_kept():
+            return
         self._head = Reference(seq, stamp, pose, disparity, ref.intrinsics, image, (ref.stamp, ref.pose), known,
                                ref.speed)
         self._use(self._head)
@@ -259,7 +296,7 @@ class Tracker:
         self._origin = self._origin_flow = None
         self._mapped = self._head = None
         self._keyframes = []
-        self._promoted = {}
+        self._promoted, self._carried = {}, {}
         self.lost = False
 
     def predict(self, stamp: int) -> np.ndarray:
