@@ -185,6 +185,39 @@ def test_with_the_dense_patch_rule_off_no_keyframe_texture_is_measured():
     assert graph._texture == {}
 
 
+@pytest.mark.parametrize("name, bare", [("rot1", False), ("low_texture", True)])
+def test_a_lossless_bare_pair_keeps_the_working_size_when_edge_flows_are_halved(name, bare):
+    """``keyframe_flow_downscale`` 2 halves a lossless stream's edge flows; a bare pair keeps the working size (half
+    the size leaves DIS half of what little a bare wall shows), so its targets are the dense-patch working-size
+    ones. A textured pair's come from the halved images; a live stream's (a cheap preset) always do."""
+    from dataclasses import replace
+
+    import torch
+
+    from services.ba.frontend.graph import KeyframeGraph
+    from services.synth.profiles import profile, profile_world
+
+    world = profile_world(profile(name, n=5), 256, 192)
+    images = [cv2.cvtColor(world.render(seq).rgb, cv2.COLOR_RGB2GRAY) for seq in (0, 4)]
+    params = FlowParams()
+    halves = [cv2.resize(image, (128, 96), interpolation=cv2.INTER_AREA) for image in images]
+    at_half = replace(params, grid=params.grid // 2, fb_sigma=params.fb_sigma / 2)
+    for preset in (None, "ultrafast"):
+        graph = KeyframeGraph(torch.tensor([40.0, 40.0, 15.5, 11.5], dtype=torch.float64), (24, 32), params,
+                              torch.device("cpu"))
+        graph.flow_downscale, graph.flow_preset = 2, preset
+        for seq, grey in zip((0, 4), images):
+            graph.append(seq, seq, grey, None, None, torch.eye(4, dtype=torch.float64),
+                         torch.ones(24, 32, dtype=torch.float64))
+        got = graph.targets(0, 1).target.numpy()
+        if preset is None and bare:
+            want = pair_targets(*images, params.for_texture(0.0))[0].target
+        else:
+            half_params = at_half if preset is None else replace(at_half, preset=preset)
+            want = pair_targets(*halves, half_params)[0].target
+        np.testing.assert_array_equal(got, want)
+
+
 def test_a_frames_flow_on_a_bare_wall_keeps_the_presets_patches():
     """Dense patches are for keyframe edges, which BA weighs against many others. A frame's pose is solved from its
     own flow alone, and over a bare person filling the view dense patches follow the person (the 10,000-frame

@@ -97,8 +97,9 @@ class BaSettings(BASettings):
     """At most this many keyframes in a row are merged; then one is mapped whatever the backlog."""
     keyframe_flow_downscale: int = Field(FrontendParams.keyframe_flow_downscale, ge=1, le=4)
     """Lossless streams: keyframe edge flows at 1/this of the working size. 1 (default): full size, the accuracy the
-    ATE targets are met with; 2: 4x less DIS, lossless KITTI 07 end to end 1.7 -> 2.4 fps (ba 99 -> 66 CPU-s) for
-    ATE 0.30 -> 0.32 m (docs/BENCHMARKS.md)."""
+    ATE targets are met with; 2: 4x less DIS, lossless KITTI 07 end to end 2.3 -> 3.2 fps (ba 76 -> 50 CPU-s) at
+    the same ATE, but the synthetic pure rotation 0.43 -> 1.64 % of path; a bare pair's flows (bare walls) keep the
+    working size either way (docs/BENCHMARKS.md)."""
     live_flow_downscale: int = FrontendParams.live_flow_downscale
     """Real-time streams: keyframe edge flows at 1/this of the working size (mapping keeps up with a live camera)."""
     live_iterations: int = FrontendParams.live_iterations

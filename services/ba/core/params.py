@@ -123,8 +123,10 @@ class FlowParams:
     # frames 2000-2899 0.026 m with the rule, 0.027 m without; 4150-4449 0.022 / 0.024 m (0.048 m with dense
     # frames' flows too); TartanAir 0.89 % of path (1.34 % without; docs/BENCHMARKS.md, twenty-sixth session)
 
+    def is_bare(self, texture: float) -> bool:
+        """Whether a pair of images showing ``texture`` (the lower of the two) gets the bare walls' exceptions."""
+        return self.low_texture_patch_stride is not None and texture < self.low_texture_below
+
     def for_texture(self, texture: float) -> "FlowParams":
         """These parameters for a pair of images showing ``texture`` (the lower of the two)."""
-        if self.low_texture_patch_stride is None or texture >= self.low_texture_below:
-            return self
-        return replace(self, patch_stride=self.low_texture_patch_stride)
+        return replace(self, patch_stride=self.low_texture_patch_stride) if self.is_bare(texture) else self

@@ -153,7 +153,7 @@ class KeyframeGraph:
         """Cached flow targets of keyframe ``i`` into keyframe ``j`` (positions)."""
         key = (self.seqs[i], self.seqs[j])
         if key not in self._cache:
-            scale = self.flow_downscale
+            scale = self._flow_scale(i, j)
             fwd = bwd = None
             if self.predict_flow:
                 fwd, bwd = (induced_flow_field(self.poses[a], self.poses[b], self.disparity[a], self.intrinsics,
@@ -168,7 +168,7 @@ class KeyframeGraph:
                 params = self.for_texture(params, i, j)
             # both directions at once: the reverse edge is (almost) always asked for too (temporal edges come
             # in pairs), and its two flows are these
-            there, back = core_flow.pair_targets(self._image(i), self._image(j), params, fwd, bwd)
+            there, back = core_flow.pair_targets(self._image(i, scale), self._image(j, scale), params, fwd, bwd)
             self._cache[key] = Targets(torch.from_numpy(there.target), torch.from_numpy(there.confidence))
             self._cache.setdefault((self.seqs[j], self.seqs[i]),
                                    Targets(torch.from_numpy(back.target), torch.from_numpy(back.confidence)))
@@ -197,16 +197,25 @@ class KeyframeGraph:
             self._texture[seq] = image_texture(self.images[k])
         return self._texture[seq]
 
-    def _image(self, k: int) -> np.ndarray:
-        """Keyframe ``k``'s grey image at 1/flow_downscale of the working size."""
-        if self.flow_downscale == 1:
+    def _flow_scale(self, i: int, j: int) -> int:
+        """1/size of the images keyframes ``i`` and ``j``'s flows are computed at: ``flow_downscale``, except that a
+        lossless stream's bare pair (:meth:`FlowParams.for_texture`) keeps the working size, since half the size
+        leaves DIS half of what little a bare wall shows (TartanAir hospital: 0.90 % of path at the working size,
+        1.18 % with every flow at half; docs/BENCHMARKS.md)."""
+        scale = self.flow_downscale
+        if scale == 1 or self.flow_preset is not None:
+            return scale
+        return 1 if self.flow_params.is_bare(min(self.texture(k) for k in (i, j))) else scale
+
+    def _image(self, k: int, scale: int) -> np.ndarray:
+        """Keyframe ``k``'s grey image at 1/``scale`` of the working size."""
+        if scale == 1:
             return self.images[k]
         seq = self.seqs[k]
         small = self._small.get(seq)
-        if small is None or small.shape[0] * self.flow_downscale != self.images[k].shape[0]:
+        if small is None or small.shape[0] * scale != self.images[k].shape[0]:
             height, width = self.images[k].shape[:2]
-            small = cv2.resize(self.images[k], (width // self.flow_downscale, height // self.flow_downscale),
-                               interpolation=cv2.INTER_AREA)
+            small = cv2.resize(self.images[k], (width // scale, height // scale), interpolation=cv2.INTER_AREA)
             self._small[seq] = small
         return small
 

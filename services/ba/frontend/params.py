@@ -139,7 +139,8 @@ class FrontendParams:
     # this many (0: none), fixed, as loop edges' targets: later laps tie to the first instead of to the lap before,
     # whose drift they share (Frontend._retire; KeyframeGraph.landmarks)
     keyframe_flow_downscale: int = 1  # a lossless stream's keyframe edge flows at 1/this of the working size: 2 is
-    # 4x less DIS (KITTI 07 in process: edge flows 25.2 -> 6.6 s, wall 72 -> 54 s) for ATE 0.306 -> 0.316 m
+    # 4x less DIS (KITTI 07 in process: edge flows 25.2 -> 6.6 s, wall 72 -> 54 s) for ATE 0.306 -> 0.316 m; not the
+    # default: the synthetic pure rotation 0.43 -> 1.64 % of path (a bare pair keeps the working size, graph.py)
     live_flow_downscale: int = 2  # keyframes of a real-time stream get their edge flows at 1/this of the working
     # size (DIS 52 -> 12 ms per flow on KITTI): a live camera's mapping must keep up with its keyframes
     live_flow_preset: str = "ultrafast"  # DIS preset of a real-time stream's keyframe edge flows: 10.6 ms per
