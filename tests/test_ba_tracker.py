@@ -13,7 +13,8 @@ from services.ba.core.host_arrays import as_numpy
 from services.ba.frontend.graph import GRID, grid_intrinsics
 from services.ba.frontend.params import MotionParams
 from services.ba.settings import BaSettings
-from services.ba.frontend.tracker import Reference, Tracker, propagate_disparity
+from services.ba.frontend.carried_depth import propagate_disparity
+from services.ba.frontend.tracker import Reference, Tracker
 
 synth = pytest.importorskip("services.synth")
 TRACKING_FLOW = BaSettings().tracking_flow_params()  # as the ba service tracks

@@ -29,7 +29,8 @@ from services.ba.frontend.graph import KeyframeGraph, Targets, grid_intrinsics, 
 from services.ba.frontend.inputs import FrameInput, KeyframeInput
 from services.ba.frontend.params import FrontendParams, focal_ba
 from services.ba.frontend.refinement import Refinement
-from services.ba.frontend.tracker import Reference, propagate_disparity
+from services.ba.frontend.carried_depth import propagate_disparity
+from services.ba.frontend.tracker import Reference
 from services.ba.frontend.updates import Update, graph_update, pose_update
 
 logger = logging.getLogger(__name__)

@@ -199,9 +199,9 @@ class KeyframeGraph:
 
     def _flow_scale(self, i: int, j: int) -> int:
         """1/size of the images keyframes ``i`` and ``j``'s flows are computed at: ``flow_downscale``, except that a
-        lossless stream's bare pair (:meth:`FlowParams.for_texture`) keeps the working size, since half the size
-        leaves DIS half of what little a bare wall shows (TartanAir hospital: 0.90 % of path at the working size,
-        1.18 % with every flow at half; docs/BENCHMARKS.md)."""
+        lossless stream's bare pair (:meth:`FlowParams.is_bare`, the pairs that get dense patches) keeps the working
+        size, since half the size leaves DIS half of what little a bare wall shows (TartanAir hospital: 0.90 % of
+        path at the working size, 1.18 % with every flow at half; docs/BENCHMARKS.md)."""
         scale = self.flow_downscale
         if scale == 1 or self.flow_preset is not None:
             return scale

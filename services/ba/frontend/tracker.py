@@ -32,6 +32,7 @@ from services.ba.core.host_arrays import as_numpy
 from services.ba.core.params import GRID, FlowParams
 from services.ba.core.projective_numpy import induced_flow_field
 from services.ba.frontend import motion, pnp
+from services.ba.frontend.carried_depth import depth_scale, propagate_disparity, similarity_about
 from services.ba.frontend.params import MotionParams, RelocaliseParams
 from services.ba.frontend.rotation import bearing_rotation
 
@@ -70,8 +71,6 @@ class Tracked(NamedTuple):
 
 MAX_PROMOTED = 64  # keyframe poses tracking remembers, to correct its carried-over reference by mapping's
 MAX_EXTRAPOLATION = 8.0  # a prediction extends a motion at most this many times its own duration
-MIN_SCALE_CELLS = 0.1  # share of the grid tracking's carried depth must cover for its scale to be compared
-MAX_SCALE_FIX = 2.0  # one correction rescales tracking's chain by at most this factor (either way)
 
 
 def _extrapolate(t0: int, pose0: np.ndarray, t1: int, pose1: np.ndarray, stamp: int) -> np.ndarray:
@@ -88,38 +87,6 @@ def _extrapolate(t0: int, pose0: np.ndarray, t1: int, pose1: np.ndarray, stamp: 
 # 3 % and 1.2 px, a pose one should not build on.
 TRACK_MIN_SHARE = 0.03
 TRACK_MAX_RMS = 1.0
-def propagate_disparity(pose_from, pose_to, disparity, intrinsics) -> tuple[np.ndarray, np.ndarray]:
-    """Grid disparity ``(h, w)`` of camera ``pose_to`` from camera ``pose_from``'s ``(h, w)`` grid disparity: each
-    cell's point moved into the new camera and splatted to its nearest cell (the nearest point wins); cells no
-    point lands in get the median of those that did. Poses world_from_cam ``(4, 4)``, grid intrinsics ``(4,)``
-    (numpy arrays or torch tensors). Returns float64 (disparity, known): ``known`` is 1 where a point landed, 0
-    where the median filled in."""
-    disparity = as_numpy(disparity)
-    h, w = disparity.shape
-    fx, fy, cx, cy = (float(v) for v in as_numpy(intrinsics))
-    ys, xs = np.meshgrid(np.arange(h, dtype=np.float64), np.arange(w, dtype=np.float64), indexing="ij")
-    disp = np.maximum(disparity, 1e-6)
-    points = np.stack([(xs - cx) / fx / disp, (ys - cy) / fy / disp, 1.0 / disp], axis=-1).reshape(-1, 3)
-    to_from = se3.inverse(as_numpy(pose_to)) @ as_numpy(pose_from)
-    moved = points @ to_from[:3, :3].T + to_from[:3, 3]
-    z = moved[:, 2]
-    front = z > 1e-6
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = np.round(moved[:, 0] / np.maximum(z, 1e-6) * fx + cx)
-        v = np.round(moved[:, 1] / np.maximum(z, 1e-6) * fy + cy)
-    inside = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    out = np.zeros(h * w)
-    np.maximum.at(out, (v[inside] * w + u[inside]).astype(np.int64), 1.0 / z[inside])
-    filled = out > 0
-    fill = _lower_median(out[filled]) if filled.any() else _lower_median(disp.ravel())
-    return np.where(filled, out, fill).reshape(h, w), filled.reshape(h, w).astype(np.float64)
-
-
-def _lower_median(values: np.ndarray) -> float:
-    """The lower of the two middle values for an even count (as torch's median: a value that occurs)."""
-    return float(np.partition(values, (values.size - 1) // 2)[(values.size - 1) // 2])
-
-
 def _holds(res: motion.MotionResult, cells: int) -> bool:
     """Tracking's checks of an alignment: solved, finite, on enough of the grid and with a small enough residual."""
     return (res.ok and res.weight >= TRACK_MIN_SHARE * cells and res.rms <= TRACK_MAX_RMS
@@ -175,7 +142,7 @@ class Tracker:
         """Mapping refined keyframe ``ref`` that tracking had posed and carried depth past: the drift tracking
         accumulated up to it is the difference of the two poses, and, where tracking had carried depth to ``ref``
         itself, of the two depths' scales. The carried-over reference, the motion history and the later promoted
-        keyframes move by that similarity about ``ref`` (:meth:`_chain_fix`), and the reference takes its depth
+        keyframes move by that similarity about ``ref`` (:func:`similarity_about`), and the reference takes its depth
         afresh from ``ref``'s map where that covers as much of it (DSO's coarse tracker likewise always tracks
         against the newest mapped depth). Without it tracking stays a visual odometry for as long as mapping is
         behind (KITTI 07 live: 7 m)."""
@@ -183,7 +150,7 @@ class Tracker:
         if tracked is None:
             return
         scale = self._depth_scale(ref)
-        fix = self._chain_fix(ref.pose, tracked, scale)
+        fix = similarity_about(ref.pose, tracked, scale)
         head = self._head
         pose = fix(head.pose)
         previous = None if head.previous is None else (head.previous[0], fix(head.previous[1]))
@@ -201,35 +168,9 @@ class Tracker:
         self._use(self._head)
 
     def _depth_scale(self, ref: Reference) -> float:
-        """Mapping's depth over tracking's at keyframe ``ref``: the median ratio over the cells tracking's carried
-        depth had a point in (1 when it carried none there, or too few cells). A chain of promoted keyframes carries
-        depth from one to the next, so its scale drifts from mapping's (KITTI 07 live: 0.85-3.05 over 20 frames);
-        a rigid correction would keep that drift in every pose after ``ref``."""
+        """Mapping's depth over the depth tracking carried to keyframe ``ref`` (1 where it carried none there)."""
         carried = self._carried.get(ref.seq)
-        if carried is None:
-            return 1.0
-        disparity, known = carried
-        cells = (known > 0) & (disparity > 0) & (ref.disparity > 0)
-        if cells.mean() < MIN_SCALE_CELLS:
-            return 1.0
-        ratio = float(np.median(disparity[cells] / ref.disparity[cells]))
-        return float(np.clip(ratio, 1.0 / MAX_SCALE_FIX, MAX_SCALE_FIX))
-
-    @staticmethod
-    def _chain_fix(mapped: np.ndarray, tracked: np.ndarray, scale: float):
-        """The similarity that takes tracking's pose of a keyframe, ``tracked``, to mapping's, ``mapped``, and
-        stretches every pose's offset from it by ``scale``: a function of a (4, 4) world_from_cam.
-
-        Every product is pulled back onto SO(3): the promoted poses are multiplied by each correction's fix, and the
-        next fix is computed from them, so rounding off SO(3) roughly doubled with every correction (1e-6 after 35
-        corrections in a row; at the end of a live KITTI stream, mapping far behind, a prediction had det R < 0)."""
-        from_tracked = se3.inverse(tracked)
-
-        def fix(pose: np.ndarray) -> np.ndarray:
-            rel = from_tracked @ pose
-            rel[:3, 3] *= scale
-            return se3.orthonormalize(mapped @ rel)
-        return fix
+        return 1.0 if carried is None else depth_scale(*carried, ref.disparity)
 
     def keyframe_seen(self, seq: int) -> None:
         """A keyframe went past tracking, posed or not: it counts towards how far behind mapping is."""
