@@ -109,6 +109,9 @@ class BaSettings(BASettings):
     have joined since the last (0: only at the end of stream)."""
     background_ba_s: float = FrontendParams.background_ba_s
     """... within this many seconds (it stops before an iteration that would end past them)."""
+    live_background_ba_s: float = Field(FrontendParams.live_background_ba_s, ge=0)
+    """Real-time streams: the same BA in mapping's spare time, within this many seconds (0: never). Short, since
+    keyframes keep arriving: a few iterations that keep the live map's drift down."""
     background_ba_keyframes: int = FrontendParams.background_ba_keyframes
     """... over this many keyframes, the newest held ones and the landmarks they reach counted together (0:
     ``keep_keyframes``): the BA's memory and time grow with its keyframes' edges."""
@@ -240,6 +243,7 @@ class BaSettings(BASettings):
             live_calibration=self.live_calibration, background_ba_every=self.background_ba_every,
             background_ba_keyframes=self.background_ba_keyframes, background_ba_edges=self.background_ba_edges,
             background_ba_s=self.background_ba_s, settled_global_ba_s=self.settled_global_ba_s,
+            live_background_ba_s=self.live_background_ba_s,
             settle_all_keyframes=self.settle_all_keyframes,
             global_ba_s=self.global_ba_s, relocalise=self.relocalise_params())
 

@@ -18,11 +18,16 @@ log = logging.getLogger(__name__)
 
 
 def refine_while_idle(state: BaState, inboxes: tuple[Inbox, ...], cfg: BaSettings) -> Outputs:
-    """Mapping has nothing queued: a live stream's frames that tracking posed are aligned again with mapping's own
-    flow (``Frontend.refine_frame``), a few at a time, until a message comes to one of ``inboxes`` (mapping's, and
-    tracking's when tracking runs on a thread of this interpreter: its frame must not wait behind a refinement);
-    their revised poses go out."""
-    out: Outputs = []
+    """Mapping has nothing queued: the background BA over the held keyframes when one is due; else a live stream's
+    frames that tracking posed are aligned again with mapping's own flow (``Frontend.refine_frame``), a few at a
+    time, until a message comes to one of ``inboxes`` (mapping's, and tracking's when tracking runs on a thread of
+    this interpreter: its frame must not wait behind a refinement). What they revise goes out. The BA comes first:
+    a live stream always has a tracked frame to align again, and the BA would never run behind them."""
+    if any(box.qsize() for box in inboxes):
+        return []
+    out = refine_globally(state)
+    if out:
+        return out
     for _ in range(cfg.refine_frames_per_idle):
         if any(box.qsize() for box in inboxes):
             break
@@ -35,8 +40,6 @@ def refine_while_idle(state: BaState, inboxes: tuple[Inbox, ...], cfg: BaSetting
             break
         log.debug("frame refined", extra={"stream": state.stream, "seq": int(update.poses.frame_seqs[-1])})
         out.append(poses_out(state.stream, int(update.poses.frame_seqs[-1]), time.time_ns(), update.poses, False))
-    if not out and not any(box.qsize() for box in inboxes):
-        out += refine_globally(state)
     return out
 
 

@@ -99,6 +99,10 @@ class FrontendParams:
     background_ba_every: int = 10  # a lossless stream's mapping, when idle, runs the end-of-stream BA over every
     # held keyframe once this many keyframes have joined since the last (0: never; Frontend.refine_globally)
     background_ba_s: float = 3.0  # ... within this many seconds (refinement.time_bound)
+    live_background_ba_s: float = 0.6  # a real-time stream's mapping runs the same BA when it is due and mapping
+    # is idle, within this many seconds (0: never): keyframes arrive every ~0.2 s on KITTI, and a 1.6-2.2 s BA left
+    # mapping behind them (first poses 1.34-2.32 m against 1.45-1.66 m); at 0.6 s it does 2-3 iterations over 30-60
+    # keyframes and the live map drifts less (KITTI 07 first poses ~1.5 -> ~1.1 m; docs/BENCHMARKS.md)
     background_ba_keyframes: int = 0  # ... over this many keyframes, the newest held ones and the landmarks they
     # reach (0: keep_keyframes; Refinement._background_span): ba's memory peak is this BA, but over the newest 50
     # KITTI 07 lossless ended at 0.318 m against 0.306 (one run each, the same focal; docs/BENCHMARKS.md)

@@ -78,7 +78,7 @@ class Refinement:
         return Update(poses=pose_update(g, self.frames, sorted(self.frames.frames) + list(g.seqs)))
 
     def refine_globally(self) -> Update:
-        """A lossless stream's background refinement (mapping's spare time, or after a keyframe when ba sets the
+        """Background refinement (mapping's spare time, or on a lossless stream after a keyframe when ba sets the
         pace): once ``background_ba_every`` keyframes have joined since the last one, the end of stream's BA over
         the held keyframes, bounded to ``background_ba_s``, so the map outside the window is refined during the
         stream and the end of stream's own BA only settles it (bounded to ``settled_global_ba_s`` once one ran).
@@ -86,17 +86,20 @@ class Refinement:
         ``keep_keyframes``) of them together, and ``background_ba_edges`` edges at most when set
         (:meth:`_background_span`; the oldest held one is its gauge), so its memory and time are bounded by that.
         Every keyframe's pose and the maps of those it spanned in the update (empty when none is due, or the BA was
-        refused). A live stream's mapping has no such time: a BA over 100 keyframes takes seconds, and keyframes
-        would queue behind it."""
+        refused). A live stream's mapping has seconds for it only between keyframes: its BA is bounded to
+        ``live_background_ba_s`` (0: none), a few iterations that keep the live map's drift down (tracking aligns
+        to it), and it does not count as one the end of stream may merely settle."""
         g, p = self.graph, self.params
-        if (g is None or not self.initialised or self._live or p.background_ba_every <= 0
-                or self._since_global < p.background_ba_every or len(g) <= p.graph.window):
+        bound = p.live_background_ba_s if self._live else p.background_ba_s
+        if (g is None or not self.initialised or (self._live and bound <= 0) or p.background_ba_every <= 0
+                or self._since_global < p.background_ba_every
+                or len(g) <= (p.live_window if self._live else p.graph.window)):
             return Update()
         self._since_global = 0
-        self._background_bas += 1
+        self._background_bas += 0 if self._live else 1
         keyframes = self._background_span()
         began = time.monotonic()
-        accepted = self._global_ba(p.background_ba_s, keyframes)
+        accepted = self._global_ba(bound, keyframes)
         logger.info("background BA", extra={"keyframes": len(keyframes), "edges": self._edge_count(keyframes),
                                             "accepted": accepted,
                                             "seconds": round(time.monotonic() - began, 2)})
