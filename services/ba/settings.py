@@ -105,8 +105,8 @@ class BaSettings(BASettings):
     live_iterations: int = FrontendParams.live_iterations
     """Real-time streams: LM iterations of the window BA per keyframe."""
     background_ba_every: int = FrontendParams.background_ba_every
-    """Lossless streams: mapping's spare time runs the global BA over every held keyframe once this many keyframes
-    have joined since the last (0: only at the end of stream)."""
+    """Mapping's spare time runs the global BA over every held keyframe once this many keyframes have joined since
+    the last (0: only at the end of stream); on a real-time stream bounded to ``live_background_ba_s``."""
     background_ba_s: float = FrontendParams.background_ba_s
     """... within this many seconds (it stops before an iteration that would end past them)."""
     live_background_ba_s: float = Field(FrontendParams.live_background_ba_s, ge=0)
