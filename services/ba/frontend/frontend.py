@@ -263,8 +263,11 @@ class Frontend(Refinement):
         return steps.early(self.graph, k, self.params.burst_gap)
 
     def _window(self) -> list[int]:
-        size = self.params.live_window if self._live else self.params.graph.window
-        return self.graph.recent()[-size:]
+        return self.graph.recent()[-self._window_size():]
+
+    def _window_size(self) -> int:
+        """Keyframes in the sliding window: a real-time stream's is shorter (its BA must keep up)."""
+        return self.params.live_window if self._live else self.params.graph.window
 
     def _add_proximity(self, k: int) -> None:
         upkeep.add_proximity(self.graph, k, self._window(), self.params.graph)

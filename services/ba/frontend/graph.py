@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import replace
 from typing import Callable, NamedTuple
 
@@ -185,10 +186,14 @@ class KeyframeGraph:
 
     def for_texture(self, params: FlowParams, *ks: int) -> FlowParams:
         """``params`` for flows between keyframes ``ks`` (:meth:`FlowParams.for_texture` of the barer one): bare
-        walls may get denser DIS patches. Their texture is measured only when that rule is on (off by default)."""
-        if params.low_texture_patch_stride is None:
-            return params
-        return params.for_texture(min(self.texture(k) for k in ks))
+        walls may get denser DIS patches."""
+        return params.for_texture(self._pair_texture(*ks))
+
+    def _pair_texture(self, *ks: int) -> float:
+        """The texture of the barer of keyframes ``ks``, measured only when the bare-wall rule is on (off: inf)."""
+        if self.flow_params.low_texture_patch_stride is None:
+            return math.inf
+        return min(self.texture(k) for k in ks)
 
     def texture(self, k: int) -> float:
         """How much keyframe ``k``'s working image shows (its flows' DIS patch stride, FlowParams.for_texture)."""
@@ -205,7 +210,7 @@ class KeyframeGraph:
         scale = self.flow_downscale
         if scale == 1 or self.flow_preset is not None:
             return scale
-        return 1 if self.flow_params.is_bare(min(self.texture(k) for k in (i, j))) else scale
+        return 1 if self.flow_params.is_bare(self._pair_texture(i, j)) else scale
 
     def _image(self, k: int, scale: int) -> np.ndarray:
         """Keyframe ``k``'s grey image at 1/``scale`` of the working size."""

@@ -93,7 +93,7 @@ class Refinement:
         bound = p.live_background_ba_s if self._live else p.background_ba_s
         if (g is None or not self.initialised or (self._live and bound <= 0) or p.background_ba_every <= 0
                 or self._since_global < p.background_ba_every
-                or len(g) <= (p.live_window if self._live else p.graph.window)):
+                or len(g) <= self._window_size()):
             return Update()
         self._since_global = 0
         self._background_bas += 0 if self._live else 1
