@@ -218,6 +218,36 @@ def test_a_lossless_bare_pair_keeps_the_working_size_when_edge_flows_are_halved(
         np.testing.assert_array_equal(got, want)
 
 
+def test_a_lossless_pair_with_little_parallax_keeps_the_working_size_when_edge_flows_are_halved():
+    """With halved edge flows a pair whose poses predict under ``full_size_below_parallax`` working px of
+    translational parallax (a camera that turned on the spot) keeps the working size: its depth and translation are
+    in sub-pixel flow differences. The same images with the second camera 0.1 units to the side (4 grid px of
+    parallax at disparity 1) get the half-size targets; so does the pair with the rule off."""
+    from dataclasses import replace
+
+    import torch
+
+    from services.ba.frontend.graph import KeyframeGraph
+    from services.synth.profiles import profile, profile_world
+
+    world = profile_world(profile("rot1", n=5), 256, 192)
+    images = [cv2.cvtColor(world.render(seq).rgb, cv2.COLOR_RGB2GRAY) for seq in (0, 4)]
+    params = FlowParams()
+    halves = [cv2.resize(image, (128, 96), interpolation=cv2.INTER_AREA) for image in images]
+    full = pair_targets(*images, params)[0].target
+    half = pair_targets(*halves, replace(params, grid=params.grid // 2, fb_sigma=params.fb_sigma / 2))[0].target
+    side = torch.eye(4, dtype=torch.float64)
+    side[0, 3] = 0.1
+    for second, below, want in ((torch.eye(4, dtype=torch.float64), 2.0, full), (side, 2.0, half),
+                                (torch.eye(4, dtype=torch.float64), 0.0, half)):
+        graph = KeyframeGraph(torch.tensor([40.0, 40.0, 15.5, 11.5], dtype=torch.float64), (24, 32), params,
+                              torch.device("cpu"))
+        graph.flow_downscale, graph.full_size_below_parallax = 2, below
+        for seq, grey, pose in zip((0, 4), images, (torch.eye(4, dtype=torch.float64), second)):
+            graph.append(seq, seq, grey, None, None, pose, torch.ones(24, 32, dtype=torch.float64))
+        np.testing.assert_array_equal(graph.targets(0, 1).target.numpy(), want)
+
+
 def test_a_frames_flow_on_a_bare_wall_keeps_the_presets_patches():
     """Dense patches are for keyframe edges, which BA weighs against many others. A frame's pose is solved from its
     own flow alone, and over a bare person filling the view dense patches follow the person (the 10,000-frame

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from services.ba.core import projective, se3, se3_numpy
-from services.ba.core.projective_numpy import induced_flow_field, pixel_grid, reproject_into
+from services.ba.core.projective_numpy import induced_flow_field, pixel_grid, reproject_into, translational_parallax
 
 
 def _tangents(n: int, rot_scale: float, seed: int = 0) -> np.ndarray:
@@ -87,3 +87,34 @@ def test_the_induced_flow_is_the_translation_parallax_at_every_working_pixel():
     np.testing.assert_allclose(flow[..., 1], 0.0, atol=1e-5)
     torch_args = [torch.from_numpy(a) for a in (np.eye(4), moved, disparity, k)]
     np.testing.assert_array_equal(induced_flow_field(*torch_args, grid), flow)  # mapping passes its tensors
+
+
+def _project(pose: np.ndarray, points: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """World ``points`` (P, 3) into the camera ``pose`` (world_from_cam), by hand."""
+    cam = (points - pose[:3, 3]) @ pose[:3, :3]
+    return cam[:, :2] / cam[:, 2:] * k[:2] + k[2:]
+
+
+def test_translational_parallax_is_what_the_translation_alone_moves():
+    """A wall 2 m away seen from a camera 10 cm to the side moves f t d = 2.5 grid px; a camera that only turned
+    makes none; a camera that turned and moved makes the median distance between where the wall's points land
+    from its centre and from the first camera's (projected by hand here)."""
+    h, w = 6, 8
+    disparity = np.full((h, w), 0.5)
+    k = np.array([50.0, 50.0, 3.5, 2.5])
+    pixels = pixel_grid(h, w)
+    wall = np.concatenate([(pixels - k[2:]) / k[:2], np.ones((len(pixels), 1))], axis=1) * 2.0
+    side = np.eye(4)
+    side[0, 3] = 0.1
+    assert translational_parallax(np.eye(4), side, disparity, k) == pytest.approx(50.0 * 0.1 * 0.5, rel=1e-9)
+    turned = np.eye(4)
+    turned[:3, :3] = se3_numpy.exp(np.array([0.0, 0.0, 0.0, 0.02, -0.05, 0.01]))[:3, :3]
+    assert translational_parallax(np.eye(4), turned, disparity, k) == pytest.approx(0.0, abs=1e-9)
+    for moved_by in ([0.1, 0.0, 0.0], [0.03, -0.02, 0.5]):
+        moved = turned.copy()
+        moved[:3, 3] = moved_by
+        want = np.median(np.linalg.norm(_project(moved, wall, k) - _project(turned, wall, k), axis=1))
+        assert want > 1.0
+        assert translational_parallax(np.eye(4), moved, disparity, k) == pytest.approx(want, rel=1e-9)
+    torch_args = [torch.from_numpy(a) for a in (np.eye(4), moved, disparity, k)]
+    assert translational_parallax(*torch_args) == translational_parallax(np.eye(4), moved, disparity, k)

@@ -101,7 +101,7 @@ def test_a_principal_point_guessed_off_the_lens_is_refined_and_the_trajectory_fo
               f"{truth.round(2)}, ATE {rmse:.4f} m over {length:.2f} m")
     (refined_ate, refined_pp), (held_ate, held_pp) = runs[True], runs[False]
     np.testing.assert_allclose(held_pp, truth + (12.0, -8.0))
-    assert abs(refined_pp[0] - truth[0]) < 2.0  # 12 px off -> 1.5 measured
+    assert abs(refined_pp[0] - truth[0]) < 4.0  # 12 px off -> 2.9 measured (1.5 with every edge flow at full size)
     assert abs(refined_pp[1] - (truth[1] - 8.0)) < 1.0  # 0.08 px moved
     assert refined_ate < 1.1 * held_ate
 
@@ -131,9 +131,8 @@ def test_orbit_trajectory_every_frame_posed_and_accurate():
 
 
 def test_a_lossless_stream_with_half_size_keyframe_flows_stays_on_the_trajectory():
-    """``keyframe_flow_downscale`` = 2: a lossless stream's keyframe edge flows from half-size images (4x less DIS,
-    the lossless speed knob); the default keeps them at the working size. Every frame is posed within 1 % of the
-    path either way."""
+    """``keyframe_flow_downscale`` = 2 (the default): a lossless stream's keyframe edge flows from half-size images
+    (4x less DIS); 1 keeps them at the working size. Every frame is posed within 1 % of the path either way."""
     world, msgs = synth_stream(n_frames=60, rendered=36, every=3)
     for downscale in (1, 2):
         fe = Frontend(FrontendParams(keyframe_flow_downscale=downscale))

@@ -96,10 +96,13 @@ class BaSettings(BASettings):
     realtime_max_merged: int = 1
     """At most this many keyframes in a row are merged; then one is mapped whatever the backlog."""
     keyframe_flow_downscale: int = Field(FrontendParams.keyframe_flow_downscale, ge=1, le=4)
-    """Lossless streams: keyframe edge flows at 1/this of the working size. 1 (default): full size, the accuracy the
-    ATE targets are met with; 2: 4x less DIS, lossless KITTI 07 end to end 2.3 -> 3.2 fps (ba 76 -> 50 CPU-s) at
-    the same ATE, but the synthetic pure rotation 0.43 -> 1.64 % of path; a bare pair's flows (bare walls) keep the
-    working size either way (docs/BENCHMARKS.md)."""
+    """Lossless streams: keyframe edge flows at 1/this of the working size. 2 (default): 4x less DIS, lossless
+    KITTI 07 end to end 2.3 -> 3.3 fps at the same ATE; bare pairs and pairs with little parallax keep the working
+    size. 1: every edge flow at the working size (docs/BENCHMARKS.md)."""
+    full_size_below_parallax: float = Field(FrontendParams.full_size_below_parallax, ge=0)
+    """Lossless streams with ``keyframe_flow_downscale`` > 1: a keyframe pair whose poses predict less translational
+    parallax than this (median, working px) gets its flows at the working size: a camera that turns on the spot,
+    or starts moving after a turn, has its depth and translation in sub-pixel flow (0: no such exception)."""
     live_flow_downscale: int = FrontendParams.live_flow_downscale
     """Real-time streams: keyframe edge flows at 1/this of the working size (mapping keeps up with a live camera)."""
     live_iterations: int = FrontendParams.live_iterations
@@ -238,6 +241,7 @@ class BaSettings(BASettings):
             landmark_keyframes=self.landmark_keyframes,
             live_flow_downscale=self.live_flow_downscale, live_iterations=self.live_iterations,
             keyframe_flow_downscale=self.keyframe_flow_downscale,
+            full_size_below_parallax=self.full_size_below_parallax,
             live_max_deferred=self.live_max_deferred, final_align_s=self.final_align_s,
             live_window=self.live_window, live_flow_preset=self.live_flow_preset,
             live_calibration=self.live_calibration, background_ba_every=self.background_ba_every,

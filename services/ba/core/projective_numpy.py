@@ -92,3 +92,22 @@ def induced_flow_field(pose_i, pose_j, disparity_i, intrinsics, grid: int) -> np
     flow = np.nan_to_num(flow, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)
     # grid cell centres sit at working pixels 8c + 3.5, so a plain resize keeps them aligned
     return cv2.resize(flow, (w * grid, h * grid), interpolation=cv2.INTER_LINEAR)
+
+
+def translational_parallax(pose_i, pose_j, disparity_i, intrinsics) -> float:
+    """Median distance (grid px) between where keyframe i's grid points land in camera j and where they would land
+    were camera j turned the same but at camera i's centre: the parallax j's translation makes, the part of a flow
+    that carries depth and translation. Poses ``(4, 4)`` world_from_cam, ``disparity_i`` ``(h, w)``, ``intrinsics``
+    ``(4,)`` of the grid (numpy arrays or torch tensors); 0 where no point lands in front of both."""
+    disparity_i = as_numpy(disparity_i)
+    h, w = disparity_i.shape
+    pixels = pixel_grid(h, w)
+    source, pose_j = as_numpy(pose_i)[None], as_numpy(pose_j)
+    turned = pose_j.copy()
+    turned[:3, 3] = source[0, :3, 3]
+    moved, still = (reproject_into(source, pose, disparity_i.reshape(1, -1), pixels, as_numpy(intrinsics),
+                                   with_jacobian=False) for pose in (pose_j, turned))
+    valid = moved.valid[0] & still.valid[0]
+    if not valid.any():
+        return 0.0
+    return float(np.median(np.linalg.norm(moved.coords[0] - still.coords[0], axis=1)[valid]))

@@ -73,6 +73,7 @@ class Frontend(Refinement):
         k = g.append(kf.seq, kf.t_ns, grey, codes, prior, pose, disp, kf.native_codes)
         self._live = kf.realtime
         g.flow_downscale = self.params.live_flow_downscale if kf.realtime else self.params.keyframe_flow_downscale
+        g.full_size_below_parallax = 0.0 if kf.realtime else self.params.full_size_below_parallax
         # the cheap preset only refines flow the map predicts; the two-view start has no prediction to begin from
         # (ultrafast alone failed it on 128x96 live flows)
         g.flow_preset = self.params.live_flow_preset if kf.realtime and self.initialised else None

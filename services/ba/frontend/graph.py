@@ -13,7 +13,7 @@ import torch
 from services.ba.core import flow as core_flow
 from services.ba.core.ba import BAProblem, BAResult, BAState, run_ba
 from services.ba.core.params import GRID, BAParams, FlowParams
-from services.ba.core.projective_numpy import induced_flow_field
+from services.ba.core.projective_numpy import induced_flow_field, translational_parallax
 from services.ba.frontend.edges import temporal_pairs
 from services.common.camera import scale_intrinsics
 from services.common.image_texture import texture as image_texture
@@ -87,6 +87,7 @@ class KeyframeGraph:
         # camera's mapping: 4x less DIS per edge); grid coordinates come out the same, so cached targets of
         # either size mix in one BA
         self.flow_downscale = 1
+        self.full_size_below_parallax = 0.0  # ... except, on a lossless stream, pairs with less parallax (working px)
         self.flow_preset: str | None = None  # DIS preset of new edge flows instead of flow_params' (live streams)
         self._small: dict[int, np.ndarray] = {}  # seq -> grey image at 1/flow_downscale
         self._texture: dict[int, float] = {}  # seq -> services.common.image_texture of its working image
@@ -96,6 +97,7 @@ class KeyframeGraph:
 
     def __setstate__(self, state: dict) -> None:
         state.setdefault("landmarks", set())  # a checkpoint written before landmarks existed
+        state.setdefault("full_size_below_parallax", 0.0)  # ... or before this rule
         if "first_principal" not in state:  # ... or before the principal point was refined: it was held at its
             # first guess, so that is where the intrinsics still have it
             state["first_principal"] = tuple(float(v) for v in state["intrinsics"][2:])
@@ -204,13 +206,22 @@ class KeyframeGraph:
 
     def _flow_scale(self, i: int, j: int) -> int:
         """1/size of the images keyframes ``i`` and ``j``'s flows are computed at: ``flow_downscale``, except that a
-        lossless stream's bare pair (:meth:`FlowParams.is_bare`, the pairs that get dense patches) keeps the working
-        size, since half the size leaves DIS half of what little a bare wall shows (TartanAir hospital: 0.90 % of
-        path at the working size, 1.18 % with every flow at half; docs/BENCHMARKS.md)."""
+        lossless stream keeps the working size for a pair where half the size loses what carries the estimate:
+        a bare pair (:meth:`FlowParams.is_bare`, the pairs that get dense patches), since half the size leaves DIS
+        half of what little a bare wall shows (TartanAir hospital: 0.90 % of path at the working size, 1.18 % with
+        every flow at half); and a pair whose poses predict under ``full_size_below_parallax`` working px of
+        translational parallax, whose depth and translation are in flow differences of a pixel or two
+        (docs/BENCHMARKS.md)."""
         scale = self.flow_downscale
         if scale == 1 or self.flow_preset is not None:
             return scale
-        return 1 if self.flow_params.is_bare(self._pair_texture(i, j)) else scale
+        if self.flow_params.is_bare(self._pair_texture(i, j)):
+            return 1
+        if self.full_size_below_parallax > 0:
+            parallax = translational_parallax(self.poses[i], self.poses[j], self.disparity[i], self.intrinsics)
+            if parallax * self.flow_params.grid < self.full_size_below_parallax:
+                return 1
+        return scale
 
     def _image(self, k: int, scale: int) -> np.ndarray:
         """Keyframe ``k``'s grey image at 1/``scale`` of the working size."""

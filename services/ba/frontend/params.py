@@ -142,9 +142,13 @@ class FrontendParams:
     landmark_keyframes: int = 64  # keyframes leaving the held ones that show a place no landmark shows stay, up to
     # this many (0: none), fixed, as loop edges' targets: later laps tie to the first instead of to the lap before,
     # whose drift they share (Frontend._retire; KeyframeGraph.landmarks)
-    keyframe_flow_downscale: int = 1  # a lossless stream's keyframe edge flows at 1/this of the working size: 2 is
-    # 4x less DIS (KITTI 07 in process: edge flows 25.2 -> 6.6 s, wall 72 -> 54 s) for ATE 0.306 -> 0.316 m; not the
-    # default: the synthetic pure rotation 0.43 -> 1.64 % of path (a bare pair keeps the working size, graph.py)
+    keyframe_flow_downscale: int = 2  # a lossless stream's keyframe edge flows at 1/this of the working size: 4x
+    # less DIS (lossless KITTI 07 end to end 2.3 -> 3.3 fps, ATE 0.138 -> 0.137 m). Pairs where half-size flow
+    # loses what carries the estimate keep the working size (KeyframeGraph._flow_scale): bare ones, and ...
+    full_size_below_parallax: float = 2.0  # ... those whose predicted translational parallax (median, working px)
+    # is under this: a pair that only turned, or starts moving again after a turn, has depth and translation in
+    # flow differences of a pixel or less (the synthetic pure rotation at half size: 1.64 % of path, 0.53 % with
+    # this; KITTI 07 keeps 270 of its 271 pairs at half size). 0: no such exception
     live_flow_downscale: int = 2  # keyframes of a real-time stream get their edge flows at 1/this of the working
     # size (DIS 52 -> 12 ms per flow on KITTI): a live camera's mapping must keep up with its keyframes
     live_flow_preset: str = "ultrafast"  # DIS preset of a real-time stream's keyframe edge flows: 10.6 ms per
