@@ -98,7 +98,8 @@ class BaSettings(BASettings):
     keyframe_flow_downscale: int = Field(FrontendParams.keyframe_flow_downscale, ge=1, le=4)
     """Lossless streams: keyframe edge flows at 1/this of the working size. 2 (default): 4x less DIS, lossless
     KITTI 07 end to end 2.3 -> 3.3 fps at the same ATE; bare pairs and pairs with little parallax keep the working
-    size. 1: every edge flow at the working size (docs/BENCHMARKS.md)."""
+    size. 1: every edge flow at the working size, for the last centimetres over the rate (a fast, densely
+    keyframed orbit: 0.16 -> 0.10 m; docs/BENCHMARKS.md)."""
     full_size_below_parallax: float = Field(FrontendParams.full_size_below_parallax, ge=0)
     """Lossless streams with ``keyframe_flow_downscale`` > 1: a keyframe pair whose poses predict less translational
     parallax than this (median, working px) gets its flows at the working size: a camera that turns on the spot,

@@ -143,7 +143,8 @@ class FrontendParams:
     # this many (0: none), fixed, as loop edges' targets: later laps tie to the first instead of to the lap before,
     # whose drift they share (Frontend._retire; KeyframeGraph.landmarks)
     keyframe_flow_downscale: int = 2  # a lossless stream's keyframe edge flows at 1/this of the working size: 4x
-    # less DIS (lossless KITTI 07 end to end 2.3 -> 3.3 fps, ATE 0.138 -> 0.137 m). Pairs where half-size flow
+    # less DIS (lossless KITTI 07 end to end 2.3 -> 3.3 fps, ATE 0.138 -> 0.137 m; a fast, densely keyframed orbit
+    # loses more: tests/test_landmarks.py's 0.10 -> 0.16 m, 1 keeps it; docs/BENCHMARKS.md). Pairs where half-size flow
     # loses what carries the estimate keep the working size (KeyframeGraph._flow_scale): bare ones, and ...
     full_size_below_parallax: float = 2.0  # ... those whose predicted translational parallax (median, working px)
     # is under this: a pair that only turned, or starts moving again after a turn, has depth and translation in
