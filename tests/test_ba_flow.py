@@ -23,6 +23,40 @@ def _shift(img: np.ndarray, dx: float, dy: float) -> np.ndarray:
                           borderMode=cv2.BORDER_REFLECT)
 
 
+def _two_views(name: str) -> list[np.ndarray]:
+    """Frames 0 and 4 of a synthetic profile, grey, 256x192."""
+    from services.synth.profiles import profile, profile_world
+
+    world = profile_world(profile(name, n=5), 256, 192)
+    return [cv2.cvtColor(world.render(seq).rgb, cv2.COLOR_RGB2GRAY) for seq in (0, 4)]
+
+
+def _graph_of(images: list[np.ndarray], params: FlowParams, second_pose=None, **graph_attrs):
+    """A keyframe graph over two 256x192 keyframes (a 32x24 grid, unit disparity), the first at the origin, the
+    second at ``second_pose`` (default: the origin too); ``graph_attrs`` set on the graph before they join."""
+    import torch
+
+    from services.ba.frontend.graph import KeyframeGraph
+
+    graph = KeyframeGraph(torch.tensor([40.0, 40.0, 15.5, 11.5], dtype=torch.float64), (24, 32), params,
+                          torch.device("cpu"))
+    for name, value in graph_attrs.items():
+        setattr(graph, name, value)
+    origin = torch.eye(4, dtype=torch.float64)
+    for seq, grey, pose in zip((0, 4), images, (origin, origin if second_pose is None else second_pose)):
+        graph.append(seq, seq, grey, None, None, pose, torch.ones(24, 32, dtype=torch.float64))
+    return graph
+
+
+def _halved(images: list[np.ndarray], params: FlowParams) -> tuple[list[np.ndarray], FlowParams]:
+    """``images`` at half size and ``params`` for them (4-px cells, the forward-backward sigma in their pixels)."""
+    from dataclasses import replace
+
+    halves = [cv2.resize(image, (128, 96), interpolation=cv2.INTER_AREA) for image in images]
+    return halves, replace(params, grid=params.grid // 2, fb_sigma=params.fb_sigma / 2)
+
+
+
 def test_translation_gives_shifted_grid_targets():
     img = _texture(128, 160, seed=0)
     dx, dy = 5.5, -3.25
@@ -143,22 +177,12 @@ def test_the_dense_patch_rule_is_turned_off_from_the_environment(monkeypatch):
 def test_keyframe_edges_of_bare_walls_are_flowed_with_dense_patches(name, dense):
     """The graph's edge targets are DIS's at the dense stride for a pair that shows too little (the synthetic
     bare wall, texture ~1) and at the preset's for a textured room (~12): the rule reaches the flows BA uses."""
-    import torch
-
-    from services.ba.frontend.graph import KeyframeGraph
     from services.common.image_texture import texture
-    from services.synth.profiles import profile, profile_world
 
-    world = profile_world(profile(name, n=5), 256, 192)
-    images = [cv2.cvtColor(world.render(seq).rgb, cv2.COLOR_RGB2GRAY) for seq in (0, 4)]
+    images = _two_views(name)
     params = FlowParams(low_texture_patch_stride=1)
     assert (min(map(texture, images)) < params.low_texture_below) == dense
-    graph = KeyframeGraph(torch.tensor([40.0, 40.0, 15.5, 11.5], dtype=torch.float64), (24, 32), params,
-                          torch.device("cpu"))
-    for seq, grey in zip((0, 4), images):
-        graph.append(seq, seq, grey, None, None, torch.eye(4, dtype=torch.float64),
-                     torch.ones(24, 32, dtype=torch.float64))
-    got = graph.targets(0, 1).target.numpy()
+    got = _graph_of(images, params).targets(0, 1).target.numpy()
     dense_targets = pair_targets(*images, FlowParams(patch_stride=1))[0].target
     preset_targets = pair_targets(*images, params)[0].target
     np.testing.assert_array_equal(got, dense_targets if dense else preset_targets)
@@ -167,19 +191,9 @@ def test_keyframe_edges_of_bare_walls_are_flowed_with_dense_patches(name, dense)
 
 def test_with_the_dense_patch_rule_off_no_keyframe_texture_is_measured():
     """With the rule off the graph's flows take the preset's patches and never pay for measuring the images."""
-    import torch
-
-    from services.ba.frontend.graph import KeyframeGraph
-    from services.synth.profiles import profile, profile_world
-
-    world = profile_world(profile("low_texture", n=5), 256, 192)
-    images = [cv2.cvtColor(world.render(seq).rgb, cv2.COLOR_RGB2GRAY) for seq in (0, 4)]
+    images = _two_views("low_texture")
     off = FlowParams(low_texture_patch_stride=None)
-    graph = KeyframeGraph(torch.tensor([40.0, 40.0, 15.5, 11.5], dtype=torch.float64), (24, 32), off,
-                          torch.device("cpu"))
-    for seq, grey in zip((0, 4), images):
-        graph.append(seq, seq, grey, None, None, torch.eye(4, dtype=torch.float64),
-                     torch.ones(24, 32, dtype=torch.float64))
+    graph = _graph_of(images, off)
     got = graph.targets(0, 1).target.numpy()
     np.testing.assert_array_equal(got, pair_targets(*images, off)[0].target)
     assert graph._texture == {}
@@ -192,24 +206,11 @@ def test_a_lossless_bare_pair_keeps_the_working_size_when_edge_flows_are_halved(
     ones. A textured pair's come from the halved images; a live stream's (a cheap preset) always do."""
     from dataclasses import replace
 
-    import torch
-
-    from services.ba.frontend.graph import KeyframeGraph
-    from services.synth.profiles import profile, profile_world
-
-    world = profile_world(profile(name, n=5), 256, 192)
-    images = [cv2.cvtColor(world.render(seq).rgb, cv2.COLOR_RGB2GRAY) for seq in (0, 4)]
+    images = _two_views(name)
     params = FlowParams()
-    halves = [cv2.resize(image, (128, 96), interpolation=cv2.INTER_AREA) for image in images]
-    at_half = replace(params, grid=params.grid // 2, fb_sigma=params.fb_sigma / 2)
+    halves, at_half = _halved(images, params)
     for preset in (None, "ultrafast"):
-        graph = KeyframeGraph(torch.tensor([40.0, 40.0, 15.5, 11.5], dtype=torch.float64), (24, 32), params,
-                              torch.device("cpu"))
-        graph.flow_downscale, graph.flow_preset = 2, preset
-        for seq, grey in zip((0, 4), images):
-            graph.append(seq, seq, grey, None, None, torch.eye(4, dtype=torch.float64),
-                         torch.ones(24, 32, dtype=torch.float64))
-        got = graph.targets(0, 1).target.numpy()
+        got = _graph_of(images, params, flow_downscale=2, flow_preset=preset).targets(0, 1).target.numpy()
         if preset is None and bare:
             want = pair_targets(*images, params.for_texture(0.0))[0].target
         else:
@@ -221,30 +222,19 @@ def test_a_lossless_bare_pair_keeps_the_working_size_when_edge_flows_are_halved(
 def test_a_lossless_pair_with_little_parallax_keeps_the_working_size_when_edge_flows_are_halved():
     """With halved edge flows a pair whose poses predict under ``full_size_below_parallax`` working px of
     translational parallax (a camera that turned on the spot) keeps the working size: its depth and translation are
-    in sub-pixel flow differences. The same images with the second camera 0.1 units to the side (4 grid px of
+    in flow differences of a pixel or less. The same images with the second camera 0.1 units to the side (4 grid px of
     parallax at disparity 1) get the half-size targets; so does the pair with the rule off."""
-    from dataclasses import replace
-
     import torch
 
-    from services.ba.frontend.graph import KeyframeGraph
-    from services.synth.profiles import profile, profile_world
-
-    world = profile_world(profile("rot1", n=5), 256, 192)
-    images = [cv2.cvtColor(world.render(seq).rgb, cv2.COLOR_RGB2GRAY) for seq in (0, 4)]
+    images = _two_views("rot1")
     params = FlowParams()
-    halves = [cv2.resize(image, (128, 96), interpolation=cv2.INTER_AREA) for image in images]
     full = pair_targets(*images, params)[0].target
-    half = pair_targets(*halves, replace(params, grid=params.grid // 2, fb_sigma=params.fb_sigma / 2))[0].target
+    halves, at_half = _halved(images, params)
+    half = pair_targets(*halves, at_half)[0].target
     side = torch.eye(4, dtype=torch.float64)
     side[0, 3] = 0.1
-    for second, below, want in ((torch.eye(4, dtype=torch.float64), 2.0, full), (side, 2.0, half),
-                                (torch.eye(4, dtype=torch.float64), 0.0, half)):
-        graph = KeyframeGraph(torch.tensor([40.0, 40.0, 15.5, 11.5], dtype=torch.float64), (24, 32), params,
-                              torch.device("cpu"))
-        graph.flow_downscale, graph.full_size_below_parallax = 2, below
-        for seq, grey, pose in zip((0, 4), images, (torch.eye(4, dtype=torch.float64), second)):
-            graph.append(seq, seq, grey, None, None, pose, torch.ones(24, 32, dtype=torch.float64))
+    for second, below, want in ((None, 2.0, full), (side, 2.0, half), (None, 0.0, half)):
+        graph = _graph_of(images, params, second, flow_downscale=2, full_size_below_parallax=below)
         np.testing.assert_array_equal(graph.targets(0, 1).target.numpy(), want)
 
 
@@ -261,21 +251,17 @@ def test_a_frames_flow_on_a_bare_wall_keeps_the_presets_patches():
     from services.ba.frontend.graph import KeyframeGraph
     from services.ba.frontend.params import MotionParams
     from services.common.image_texture import texture
-    from services.synth.profiles import profile, profile_world
 
-    world = profile_world(profile("low_texture", n=5), 256, 192)
-    keyframe, frame = (cv2.cvtColor(world.render(seq).rgb, cv2.COLOR_RGB2GRAY) for seq in (0, 4))
+    keyframe, frame = _two_views("low_texture")
     params = FlowParams()  # the rule on, as by default, and the wall bare enough for it
     assert params.low_texture_patch_stride == 1 and texture(keyframe) < params.low_texture_below
     graph = KeyframeGraph(torch.tensor([40.0, 40.0, 15.5, 11.5], dtype=torch.float64), (24, 32), params,
                           torch.device("cpu"))
     graph.append(0, 0, keyframe, None, None, torch.eye(4, dtype=torch.float64), torch.ones(24, 32, dtype=torch.float64))
-    half = (128, 96)
-    small = [cv2.resize(image, half, interpolation=cv2.INTER_AREA) for image in (keyframe, frame)]
+    small, at_half = _halved([keyframe, frame], params)
     frames = FramePoses(MotionParams())
     record = FrameRecord(4, 4, small[1])
     frames.add(record)
     got = frames._targets(graph, 0, record).target.numpy()
-    at_half = replace(params, grid=params.grid // 2, fb_sigma=params.fb_sigma / 2)
     np.testing.assert_array_equal(got, flow_targets(*small, replace(at_half, low_texture_patch_stride=None)).target)
     assert not np.array_equal(got, flow_targets(*small, replace(at_half, patch_stride=1)).target)

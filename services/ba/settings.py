@@ -103,7 +103,8 @@ class BaSettings(BASettings):
     full_size_below_parallax: float = Field(FrontendParams.full_size_below_parallax, ge=0)
     """Lossless streams with ``keyframe_flow_downscale`` > 1: a keyframe pair whose poses predict less translational
     parallax than this (median, working px) gets its flows at the working size: a camera that turns on the spot,
-    or starts moving after a turn, has its depth and translation in sub-pixel flow (0: no such exception)."""
+    or starts moving after a turn, has its depth and translation in flow differences of a pixel or less (0: no such
+    exception)."""
     live_flow_downscale: int = FrontendParams.live_flow_downscale
     """Real-time streams: keyframe edge flows at 1/this of the working size (mapping keeps up with a live camera)."""
     live_iterations: int = FrontendParams.live_iterations

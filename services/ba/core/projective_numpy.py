@@ -99,14 +99,13 @@ def translational_parallax(pose_i, pose_j, disparity_i, intrinsics) -> float:
     were camera j turned the same but at camera i's centre: the parallax j's translation makes, the part of a flow
     that carries depth and translation. Poses ``(4, 4)`` world_from_cam, ``disparity_i`` ``(h, w)``, ``intrinsics``
     ``(4,)`` of the grid (numpy arrays or torch tensors); 0 where no point lands in front of both."""
-    disparity_i = as_numpy(disparity_i)
-    h, w = disparity_i.shape
-    pixels = pixel_grid(h, w)
+    disparity_i, intrinsics = as_numpy(disparity_i), as_numpy(intrinsics)
+    pixels = pixel_grid(*disparity_i.shape)
     source, pose_j = as_numpy(pose_i)[None], as_numpy(pose_j)
     turned = pose_j.copy()
     turned[:3, 3] = source[0, :3, 3]
-    moved, still = (reproject_into(source, pose, disparity_i.reshape(1, -1), pixels, as_numpy(intrinsics),
-                                   with_jacobian=False) for pose in (pose_j, turned))
+    moved, still = (reproject_into(source, pose, disparity_i.reshape(1, -1), pixels, intrinsics, with_jacobian=False)
+                    for pose in (pose_j, turned))
     valid = moved.valid[0] & still.valid[0]
     if not valid.any():
         return 0.0
