@@ -1,6 +1,6 @@
 """Freed heap goes back to the kernel when a service asks (services/common/lifecycle.py): with the allocator tuned
-the way ba tunes it, a burst of freed arrays stays resident until ``release_free_memory``; and ``MemoryRelease``
-asks at most once per period."""
+the way ba tunes it, a burst of freed arrays stays resident until ``release_free_memory``, while a freed buffer of
+8 MiB or more leaves at once; and ``MemoryRelease`` asks at most once per period."""
 from __future__ import annotations
 
 import ctypes
@@ -23,7 +23,7 @@ PROBE = textwrap.dedent("""
     def rss_mb():
         return int(open("/proc/self/statm").read().split()[1]) * 4096 / 2**20
 
-    tune_malloc_for_tensors()  # as ba: no mmap, 512 MiB of freed heap kept
+    tune_malloc_for_tensors()  # as ba: buffers under 8 MiB from the heap, 512 MiB of freed heap kept
     before = rss_mb()
     burst = [np.ones(256 * 1024 // 8) for _ in range(1200)]  # 300 MiB of 256 KiB arrays, touched
     keep = [np.ones(16) for _ in range(1200)]  # small survivors between them: a fragmented heap, as in a stream
@@ -45,6 +45,48 @@ def test_freed_burst_stays_resident_until_released():
     assert rss["freed"] - rss["before"] > 0.8 * burst  # freed, but the tuned allocator keeps the pages
     assert rss["released"]
     assert rss["after"] - rss["before"] < 0.2 * burst  # given back
+
+
+LARGE = textwrap.dedent("""
+    import json, sys
+    import numpy as np
+    from services.common import lifecycle
+
+    def rss_mb():
+        return int(open("/proc/self/statm").read().split()[1]) * 4096 / 2**20
+
+    lifecycle.tune_malloc_for_tensors()
+    if sys.argv[1] == "heap-only":  # the tuning before: every buffer from the heap (M_MMAP_MAX = 0)
+        lifecycle._mallopt((-4, 0))
+    before = rss_mb()
+    big, small, keep = [], [], []
+    for _ in range(10):  # a BA's whole-problem fields (16 MiB) and per-slice buffers (2 MiB), with small survivors
+        big.append(np.ones(16 * 2**20 // 8))
+        small.append(np.ones(2 * 2**20 // 8))
+        keep.append(np.ones(16))
+    during = rss_mb()
+    del big
+    big_freed = rss_mb()
+    del small
+    print(json.dumps(dict(before=before, during=during, big_freed=big_freed, small_freed=rss_mb())))
+""")
+
+
+@glibc
+@pytest.mark.parametrize("allocator", ["tuned", "heap-only"])
+def test_large_buffers_leave_at_once_small_ones_stay_for_reuse(allocator):
+    """ba's tuning: freed 16 MiB buffers go back to the kernel at once, freed 2 MiB ones stay resident for the next
+    slice. The control, every buffer from the heap (the tuning before), keeps the large ones too."""
+    out = subprocess.run([sys.executable, "-c", LARGE, allocator], capture_output=True, text=True, timeout=120,
+                         check=True)
+    rss = __import__("json").loads(out.stdout.strip().splitlines()[-1])
+    assert rss["during"] - rss["before"] > 170  # 160 + 20 MiB really resident
+    big_kept = rss["big_freed"] - rss["before"]
+    if allocator == "tuned":
+        assert big_kept < 40  # the large ones left; the small ones (20 MiB) stayed
+        assert rss["small_freed"] - rss["before"] > 15  # and stay once freed
+    else:
+        assert big_kept > 150
 
 
 def test_release_at_most_once_per_period(monkeypatch):

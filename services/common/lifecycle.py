@@ -26,7 +26,6 @@ def stop_on_signals(stop: threading.Event | None = None) -> threading.Event:
 
 M_TRIM_THRESHOLD = -1
 M_MMAP_THRESHOLD = -3
-M_MMAP_MAX = -4
 M_ARENA_MAX = -8
 
 
@@ -48,17 +47,23 @@ def tune_malloc_for_frames() -> None:
     _mallopt((M_MMAP_THRESHOLD, 32 << 20), (M_TRIM_THRESHOLD, 128 << 20))
 
 
-def tune_malloc_for_tensors(keep_mib: int = 512) -> None:
-    """glibc: never return large tensor buffers to the kernel between uses. Dense BA on the CPU allocates
-    tens of ~10-40 MB temporaries per iteration; fresh mmap pages cost a page fault per 4 KiB, which made an
-    elementwise product 6x slower than on reused memory and a BA iteration ~2x slower (docs/BENCHMARKS.md,
-    BA core). Disables mmap for allocations (the 32 MiB ceiling of M_MMAP_THRESHOLD is below one code
-    sample) and keeps up to ``keep_mib`` of freed heap: a 25-keyframe window's iteration frees ~300-500 MB, so
-    512 keeps its speed (bench/ba.py: 0.099 s per iteration against 0.090 at 1024 and 0.206 at 256) while the
-    process keeps 0.5 GB less than at 1024. Called by a service's main or a bench, never at import."""
+def tune_malloc_for_tensors(keep_mib: int = 512, own_pages_mib: int = 8) -> None:
+    """glibc: keep tensor buffers in the heap between uses, but give the largest pages of their own. Dense BA on
+    the CPU allocates tens of temporaries per iteration; fresh mmap pages cost a page fault per 4 KiB, which made
+    an elementwise product 6x slower than on reused memory and a BA iteration ~2x slower (docs/BENCHMARKS.md, BA
+    core). So buffers under ``own_pages_mib`` come from the heap, which keeps up to ``keep_mib`` of freed heap (a
+    25-keyframe window's iteration frees ~300-500 MB: 512 keeps its speed, bench/ba.py). Buffers of
+    ``own_pages_mib`` and more are mmapped and go back to the kernel when freed: a background BA's whole-problem
+    tensors (an (edges, pixels) field is 10 MB at 820 edges of 48x64), allocated a few times per iteration, left
+    holes that later BAs touched again, and ba's RSS peaked at ~600 MB of free heap over ~870 MB in use. At 8 MiB
+    no per-slice buffer is mmapped (4 MiB made KITTI's 90-keyframe BA 1.5x slower; 8 was as fast as the heap) and
+    that BA peaks ~90 MB lower (docs/BENCHMARKS.md, fortieth session). Called by a service's main or a bench,
+    never at import."""
     # every thread that allocates gets an arena of its own, each keeping its own freed heap: ba's tracking,
-    # mapping and Zenoh threads held ~1.1 GB at 1,500 synthetic frames with the default (8 x cores), 0.95 GB with two
-    _mallopt((M_MMAP_MAX, 0), (M_TRIM_THRESHOLD, keep_mib << 20), (M_ARENA_MAX, 2))
+    # mapping and Zenoh threads held ~1.1 GB at 1,500 synthetic frames with the default (8 x cores), 0.95 GB with two.
+    # A fixed mmap threshold also stops glibc from raising it after each large free (its dynamic default would
+    # soon serve everything from the heap again)
+    _mallopt((M_MMAP_THRESHOLD, own_pages_mib << 20), (M_TRIM_THRESHOLD, keep_mib << 20), (M_ARENA_MAX, 2))
 
 
 def release_free_memory() -> bool:
