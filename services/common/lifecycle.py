@@ -51,14 +51,14 @@ def tune_malloc_for_tensors(keep_mib: int = 512, own_pages_mib: int = 8) -> None
     """glibc: keep tensor buffers in the heap between uses, but give the largest pages of their own. Dense BA on
     the CPU allocates tens of temporaries per iteration; fresh mmap pages cost a page fault per 4 KiB, which made
     an elementwise product 6x slower than on reused memory and a BA iteration ~2x slower (docs/BENCHMARKS.md, BA
-    core). So buffers under ``own_pages_mib`` come from the heap, which keeps up to ``keep_mib`` of freed heap (a
-    25-keyframe window's iteration frees ~300-500 MB: 512 keeps its speed, bench/ba.py). Buffers of
+    core). So buffers under ``own_pages_mib`` come from the heap, which keeps up to ``keep_mib`` of freed heap
+    (bench/ba.py: 512 kept a 25-keyframe window's speed when every buffer came from the heap). Buffers of
     ``own_pages_mib`` and more are mmapped and go back to the kernel when freed: a background BA's whole-problem
-    tensors (an (edges, pixels) field is 10 MB at 820 edges of 48x64), allocated a few times per iteration, left
-    holes that later BAs touched again, and ba's RSS peaked at ~600 MB of free heap over ~870 MB in use. At 8 MiB
-    no per-slice buffer is mmapped (4 MiB made KITTI's 90-keyframe BA 1.5x slower; 8 was as fast as the heap) and
-    that BA peaks ~90 MB lower (docs/BENCHMARKS.md, fortieth session). Called by a service's main or a bench,
-    never at import."""
+    fields (one (edges, pixels) field is 10 MB at 820 edges of 48x64) left holes that later BAs touched again, and
+    ba's RSS peaked with ~600 MB of free heap beside ~870 MB in use. 4 MiB made KITTI's 90-keyframe BA 1.5x
+    slower (its frequent per-slice buffers got fresh pages); 8 MiB was as fast as the heap there and on an
+    840-edge BA at 48x64, which peaked ~90 MB lower (docs/BENCHMARKS.md, fortieth session). Called by a service's
+    main or a bench, never at import."""
     # every thread that allocates gets an arena of its own, each keeping its own freed heap: ba's tracking,
     # mapping and Zenoh threads held ~1.1 GB at 1,500 synthetic frames with the default (8 x cores), 0.95 GB with two.
     # A fixed mmap threshold also stops glibc from raising it after each large free (its dynamic default would
