@@ -4,6 +4,7 @@ the way ba tunes it, a burst of freed arrays stays resident until ``release_free
 from __future__ import annotations
 
 import ctypes
+import json
 import subprocess
 import sys
 import textwrap
@@ -15,14 +16,26 @@ from services.common.lifecycle import MemoryRelease
 glibc = pytest.mark.skipif(not sys.platform.startswith("linux") or not hasattr(ctypes.CDLL(None), "malloc_trim"),
                            reason="glibc's malloc_trim")
 
-PROBE = textwrap.dedent("""
-    import json
+# what every probe below starts with, in a process of its own (the allocator's settings are per process)
+PRELUDE = textwrap.dedent("""
+    import json, sys
     import numpy as np
+    from services.common import lifecycle
     from services.common.lifecycle import release_free_memory, tune_malloc_for_tensors
 
     def rss_mb():
         return int(open("/proc/self/statm").read().split()[1]) * 4096 / 2**20
+""")
 
+
+def _probe(script: str, *args: str) -> dict:
+    """Run ``PRELUDE + script`` in a fresh interpreter; the JSON line it prints last."""
+    out = subprocess.run([sys.executable, "-c", PRELUDE + textwrap.dedent(script), *args], capture_output=True,
+                         text=True, timeout=120, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+PROBE = """
     tune_malloc_for_tensors()  # as ba: buffers under 8 MiB from the heap, 512 MiB of freed heap kept
     before = rss_mb()
     burst = [np.ones(256 * 1024 // 8) for _ in range(1200)]  # 300 MiB of 256 KiB arrays, touched
@@ -33,13 +46,12 @@ PROBE = textwrap.dedent("""
     released = release_free_memory()
     after = rss_mb()
     print(json.dumps(dict(before=before, during=during, freed=freed, after=after, released=released)))
-""")
+"""
 
 
 @glibc
 def test_freed_burst_stays_resident_until_released():
-    out = subprocess.run([sys.executable, "-c", PROBE], capture_output=True, text=True, timeout=120, check=True)
-    rss = __import__("json").loads(out.stdout.strip().splitlines()[-1])
+    rss = _probe(PROBE)
     burst = rss["during"] - rss["before"]
     assert burst > 250  # the arrays were really resident
     assert rss["freed"] - rss["before"] > 0.8 * burst  # freed, but the tuned allocator keeps the pages
@@ -47,17 +59,12 @@ def test_freed_burst_stays_resident_until_released():
     assert rss["after"] - rss["before"] < 0.2 * burst  # given back
 
 
-LARGE = textwrap.dedent("""
-    import json, sys
-    import numpy as np
-    from services.common import lifecycle
+M_MMAP_MAX = -4  # glibc's mallopt parameter; 0 turns mmap off (ba's tuning before the fortieth session)
 
-    def rss_mb():
-        return int(open("/proc/self/statm").read().split()[1]) * 4096 / 2**20
-
-    lifecycle.tune_malloc_for_tensors()
-    if sys.argv[1] == "heap-only":  # the tuning before: every buffer from the heap (M_MMAP_MAX = 0)
-        lifecycle._mallopt((-4, 0))
+LARGE = f"""
+    tune_malloc_for_tensors()
+    if sys.argv[1] == "heap-only":  # the tuning before: every buffer from the heap
+        lifecycle._mallopt(({M_MMAP_MAX}, 0))
     before = rss_mb()
     big, small, keep = [], [], []
     for _ in range(10):  # a BA's whole-problem fields (16 MiB) and per-slice buffers (2 MiB), with small survivors
@@ -69,7 +76,7 @@ LARGE = textwrap.dedent("""
     big_freed = rss_mb()
     del small
     print(json.dumps(dict(before=before, during=during, big_freed=big_freed, small_freed=rss_mb())))
-""")
+"""
 
 
 @glibc
@@ -77,9 +84,7 @@ LARGE = textwrap.dedent("""
 def test_large_buffers_leave_at_once_small_ones_stay_for_reuse(allocator):
     """ba's tuning: freed 16 MiB buffers go back to the kernel at once, freed 2 MiB ones stay resident for the next
     slice. The control, every buffer from the heap (the tuning before), keeps the large ones too."""
-    out = subprocess.run([sys.executable, "-c", LARGE, allocator], capture_output=True, text=True, timeout=120,
-                         check=True)
-    rss = __import__("json").loads(out.stdout.strip().splitlines()[-1])
+    rss = _probe(LARGE, allocator)
     assert rss["during"] - rss["before"] > 170  # 160 + 20 MiB really resident
     big_kept = rss["big_freed"] - rss["before"]
     if allocator == "tuned":
