@@ -153,7 +153,7 @@ def _rows(state, problem, params):
     """Linearised residuals at ``state`` in the test's layout: j_cam (E, P, R, 7), j_disp/residual/weight (E, P, R)."""
     h, w = state.disparity.shape[1:]
     prep = ba._prepare(problem, params, h, w)
-    res = ba._residuals(state, prep, params, with_jac=True)
+    res = ba._edge_residuals(state, prep, params, with_jac=True)
     eq = ba._normal_equations(res, params, ba._frozen(res, params, ba._ark(res, prep, params, None)))
     return res, prep, eq.j_cam.permute(0, 3, 2, 1), eq.j_disp.transpose(1, 2), eq.residual.transpose(1, 2), \
         eq.weight.transpose(1, 2), eq
@@ -167,7 +167,7 @@ def test_normal_equation_rows_match_autograd():
     def residual_rows(xi, disp, f):
         intr = torch.cat([f.expand(2), state.intrinsics[2:]])
         moved = ba.BAState(se3.retract(state.poses, xi), disp, intr)
-        r = ba._residuals(moved, prep, params, with_jac=False)
+        r = ba._edge_residuals(moved, prep, params, with_jac=False)
         # the solver's flow residual is reprojection - target
         return torch.cat([-r.flow.transpose(1, 2), r.embed.residual[..., None]], -1)  # (E, P, 3)
 
@@ -372,19 +372,25 @@ def test_keyframes_that_only_turned_keep_their_depth_while_walked_ones_converge(
     # turned keyframes' translation and depth share the flow's noise once depth is held)
 
 
-@pytest.mark.parametrize("embed,ark", [(0.0, True), (1.0, True), (0.0, False)],
-                         ids=["flow", "flow+embedding", "fixed kernel"])
-def test_a_problem_linearised_in_edge_slices_takes_the_same_steps(embed, ark):
+SHARP_ARK = {"use_ark": True, "kappa": 0.0, "tau": 1e-3, "alpha_dynamic": 0.0}  # L2 (cs > 0.75), Cauchy (cs < -0.04)
+
+
+@pytest.mark.parametrize("embed,robust", [(0.0, {"use_ark": True}), (1.0, {"use_ark": True}),
+                                          (0.0, {"use_ark": False}), (0.0, SHARP_ARK)],
+                         ids=["flow", "flow+embedding", "fixed kernel", "ARK with exact L2 and Cauchy pixels"])
+def test_a_problem_linearised_in_edge_slices_takes_the_same_steps(embed, robust):
     """A global BA's Jacobians, its residuals and its trial energies are formed a few edges at a time
-    (``linearise_edges``): slices of 3 edges and all edges at once give the same iterations (codes and the focal
-    on; ARK or the fixed kernel, whose shape is one broadcast value; parametrised, the embedding term)."""
+    (``linearise_edges``), and so are the fields IRLS freezes for an iteration (ARK's cosine cache, refreshed in
+    place, and its kernel constants): slices of 3 edges and all edges at once give the same iterations (codes and
+    the focal on; ARK or the fixed kernel, whose shape is one broadcast value; ARK shapes that hit the kernel's
+    exact special cases, whose masks a slice may lack; parametrised, the embedding term)."""
     win = synthetic.make_window(n=6, h=24, w=32, seed=3, surface="room")
     problem = win.problem._replace(codes=_smooth_codes(6, 24, 32, 8, seed=1))
     start = _start(win, seed=2, focal_factor=1.1)
     assert len(problem.ii) > 3 * 3  # several slices
     runs = {}
     for slices in (0, 3):
-        params = BAParams(iterations=6, robust=RobustParams(use_ark=ark, scale=0.5), lambda_embed=embed,
+        params = BAParams(iterations=6, robust=RobustParams(scale=0.5, **robust), lambda_embed=embed,
                           optimise_focal=True, compute_dtype=EXACT, linearise_edges=slices)
         runs[slices] = ba.run_ba(start, problem, params)
     whole, sliced = runs[0], runs[3]
@@ -395,3 +401,45 @@ def test_a_problem_linearised_in_edge_slices_takes_the_same_steps(embed, ark):
     assert float(sliced.state.intrinsics[0]) == pytest.approx(float(whole.state.intrinsics[0]), rel=1e-10)
     assert torch.allclose(sliced.edge_weight, whole.edge_weight, atol=1e-9)
     assert torch.allclose(sliced.alpha, whole.alpha) and sliced.alpha.shape == whole.edge_weight.shape
+    assert torch.allclose(sliced.static_weight, whole.static_weight, atol=1e-9)
+    if robust is SHARP_ARK:  # both masks were in play
+        assert bool((whole.alpha == 2).any()) and bool((whole.alpha == 0).any())
+
+
+def test_a_field_formed_in_slices_holds_each_slices_part_and_nothing_of_the_last_evaluation():
+    """``ba._into`` joins a slice's field into the field of every edge, reusing the last evaluation's: a kernel
+    mask that is None (nowhere) in a slice is False there even where the last evaluation's was True; a broadcast
+    part stays a view; a part that is the field's own slice (an ARK cache edge kept) is left as it is."""
+    edges = [slice(0, 1), slice(1, 2)]
+
+    def joined(parts, whole=None):
+        for part, at in zip(parts, edges):
+            whole = ba._into(whole, part, at, 2)
+        return whole
+
+    first = joined([torch.tensor([[True, False]]), torch.tensor([[False, True]])])
+    assert first.tolist() == [[True, False], [False, True]]
+    again = joined([None, torch.tensor([[True, True]])], first)
+    assert again is first and again.tolist() == [[False, False], [True, True]]
+    assert joined([None, torch.tensor([[True, False]])]).tolist() == [[False, False], [True, False]]
+    assert joined([None, None]) is None
+    one = torch.full((1, 1), 2.0).expand(1, 3)
+    view = joined([one, one])
+    assert view.shape == (2, 3) and view.stride() == (0, 0) and view.tolist() == [[2.0] * 3] * 2
+    values = torch.arange(6.0).view(2, 3)
+    kept = joined([values[0:1], torch.tensor([[9.0, 9.0, 9.0]])], values)
+    assert kept is values and kept.tolist() == [[0.0, 1.0, 2.0], [9.0, 9.0, 9.0]]
+
+
+def test_targets_stacked_channels_first_reach_the_solver_without_a_copy():
+    """The frontend stacks a window's flow targets channels first and hands them over as an (E, h, w, 2) view:
+    the solver's layout (E, 2, P) is then that memory itself, not a second copy of every edge's targets."""
+    win = synthetic.make_window(n=4, h=6, w=8, seed=0)
+    e = len(win.problem.ii)
+    channels_first = win.problem.targets.permute(0, 3, 1, 2).float().contiguous()
+    params = BAParams()
+    prep = ba._prepare(win.problem._replace(targets=channels_first.permute(0, 2, 3, 1)), params, 6, 8)
+    assert prep.targets.data_ptr() == channels_first.data_ptr()
+    assert torch.equal(prep.targets, win.problem.targets.float().reshape(e, 48, 2).transpose(1, 2))
+    copied = ba._prepare(win.problem._replace(targets=win.problem.targets.float()), params, 6, 8)
+    assert copied.targets.data_ptr() != win.problem.targets.data_ptr() and torch.equal(copied.targets, prep.targets)

@@ -21,7 +21,7 @@ def _badly_conditioned():
                        win.truth.intrinsics * torch.tensor([1.1, 1.1, 1.0, 1.0], dtype=torch.float64))
     h, w = state.disparity.shape[1:]
     prep = ba._prepare(win.problem, PARAMS, h, w)
-    res = ba._residuals(state, prep, PARAMS, with_jac=True)
+    res = ba._edge_residuals(state, prep, PARAMS, with_jac=True)
     eq = ba._normal_equations(res, PARAMS, ba._frozen(res, PARAMS, None))
     return win.problem, state, eq
 

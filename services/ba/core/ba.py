@@ -20,7 +20,8 @@ the oldest camera so that the distance between camera 0 and the first free camer
 Every pixel of every edge is processed in one batched tensor expression: no Python loop over pixels, and over
 edges only in slices of ``BAParams.linearise_edges`` (a global BA's Jacobians would not fit in memory at once; its
 residuals and trial energies are evaluated slice by slice too, and a fixed kernel's constants are one broadcast
-value, so what exists for every edge at once is the residuals the IRLS weights and ARK need).
+value, so what exists for every edge at once is what IRLS freezes for an iteration — ARK's cosine cache, its
+shapes' kernel constants — and the residual norms and weights the end's edge weights need).
 """
 from __future__ import annotations
 
@@ -97,6 +98,7 @@ class _Prepared(NamedTuple):
 def _prepare(problem: BAProblem, params: BAParams, h: int, w: int) -> _Prepared:
     dtype = getattr(torch, params.compute_dtype)
     e, dev = len(problem.ii), problem.targets.device
+    # a view, no copy, when the caller's (E, h, w, 2) targets are a channels-first tensor permuted (graph.run)
     targets = problem.targets.reshape(e, h * w, 2).transpose(1, 2).to(dtype).contiguous()
     codes = problem.codes
     if codes is not None and codes.dtype not in (torch.float32, torch.float64):
@@ -116,33 +118,13 @@ def _sliced(n_edges: int, params: BAParams) -> bool:
 
 
 class _Residuals(NamedTuple):
-    flow: torch.Tensor  # (E, 2, P) target - reprojection
+    """Residuals of a state (an evaluation in slices keeps only ``flow_norm`` and ``flow_w``: `_evaluate`)."""
+
+    flow: torch.Tensor | None  # (E, 2, P) target - reprojection
     flow_norm: torch.Tensor  # (E, P)
     flow_w: torch.Tensor  # (E, P) confidence * validity
     embed: embedding.EmbeddingResidual | None  # fields (E, P); d_coords (E, P, 2)
-    reproj: projective.PlaneReprojection
-
-
-def _residuals(state: BAState, prep: _Prepared, params: BAParams, with_jac: bool) -> _Residuals:
-    """Residuals of every edge; without Jacobians in a problem linearised in slices (``_sliced``), evaluated a
-    slice at a time and joined: the reprojection's per-pixel intermediates of every edge at once were ~2x the
-    residuals themselves (a 600-edge global BA: +95 MB)."""
-    if with_jac or not _sliced(len(prep.ii), params):
-        return _edge_residuals(state, prep, params, with_jac)
-    n_edges, whole = len(prep.ii), None
-    for edges in _edge_slices(n_edges, params):
-        part = _edge_residuals(state, _edges(prep, edges), params, False)
-        # every field (E, ...) filled a slice at a time: slices joined by a concatenation would exist twice
-        fields = (part.flow, part.flow_norm, part.flow_w, part.reproj.coords, part.reproj.valid,
-                  *(() if part.embed is None else (part.embed.cosine, part.embed.residual, part.embed.valid)))
-        if whole is None:
-            whole = [t.new_empty((n_edges, *t.shape[1:])) for t in fields]
-        for out, t in zip(whole, fields):
-            out[edges] = t
-    flow, flow_norm, flow_w, coords, valid, *embed = whole
-    return _Residuals(flow, flow_norm, flow_w,
-                      embedding.EmbeddingResidual(embed[0], embed[1], None, embed[2]) if embed else None,
-                      projective.PlaneReprojection(coords, valid, None, None))
+    reproj: projective.PlaneReprojection | None
 
 
 def _edge_slices(n_edges: int, params: BAParams) -> list[slice]:
@@ -220,6 +202,74 @@ def _sliced_frozen(frozen: _Frozen, edges: slice) -> _Frozen:
     return _Frozen(frozen.alpha[edges], kern, frozen.embed_weight[edges])
 
 
+class _Evaluated(NamedTuple):
+    """A state's residuals, ARK's code cosine at its reprojections and the IRLS quantities frozen from them."""
+
+    res: _Residuals  # in a problem linearised in slices only flow_norm and flow_w (the end's weights need them)
+    ark: ark_codes.ArkCosine | None
+    frozen: _Frozen
+    energy: float  # the flow and embedding energy (the priors' is not in it)
+
+
+def _evaluate(state: BAState, prep: _Prepared, params: BAParams, with_jac: bool,
+              previous: _Evaluated | None) -> _Evaluated:
+    """Residuals at ``state``, ARK's cosine (``previous``'s refreshed: see ``_ark``), the frozen IRLS quantities
+    and their energy. In a problem linearised in slices (``_sliced``; never with Jacobians there) a slice at a
+    time: each slice's fields are written into the fields of every edge, which are ``previous``'s own (``state``
+    has replaced its state: nothing reads them again), and of the residuals only ``flow_norm`` and ``flow_w`` are
+    kept. Residuals of every edge at once, and every field twice while the next state's were formed beside the
+    last, were most of a global BA's peak (docs/BENCHMARKS.md, forty-first session)."""
+    cache = None if previous is None else previous.ark
+    if with_jac or not _sliced(len(prep.ii), params):
+        res = _edge_residuals(state, prep, params, with_jac)
+        ark = _ark(res, prep, params, cache)
+        frozen = _frozen(res, params, ark)
+        return _Evaluated(res, ark, frozen, _energy(res, params, frozen))
+    n_edges, energy = len(prep.ii), 0.0
+    whole = None if previous is None else list(_fields(previous.res, previous.ark, previous.frozen))
+    for edges in _edge_slices(n_edges, params):
+        part_prep = _edges(prep, edges)
+        res = _edge_residuals(state, part_prep, params, False)
+        ark = _ark(res, part_prep, params, None if cache is None else ark_codes.ArkCosine(
+            cache.cosine[edges], cache.valid[edges], cache.coords[edges]))
+        frozen = _frozen(res, params, ark)
+        energy += _energy(res, params, frozen)
+        parts = _fields(res, ark, frozen)
+        whole = [_into(None if whole is None else w, p, edges, n_edges) for w, p in zip(whole or parts, parts)]
+        del res, ark, frozen, parts  # freed before the next slice's are formed
+    flow_norm, flow_w, cosine, inside, coords, alpha, *kernel, embed_weight = whole
+    kernel[4:] = [m if m is None or bool(m.any()) else None for m in kernel[4:]]  # masks: None where nowhere
+    ark = None if cosine is None else ark_codes.ArkCosine(cosine, inside, coords)
+    return _Evaluated(_Residuals(None, flow_norm, flow_w, None, None), ark,
+                      _Frozen(alpha, robust.Kernel(*kernel), embed_weight), energy)
+
+
+def _fields(res: _Residuals, ark: ark_codes.ArkCosine | None, frozen: _Frozen) -> tuple:
+    """The per-edge fields an evaluation in slices keeps, in the order ``_evaluate`` unpacks them."""
+    return (res.flow_norm, res.flow_w, *((None,) * 3 if ark is None else ark), frozen.alpha, *frozen.kernel,
+            frozen.embed_weight)
+
+
+def _into(whole: torch.Tensor | None, part: torch.Tensor | None, edges: slice, n_edges: int) -> torch.Tensor | None:
+    """A slice's field ``part`` written into the field of every edge ``whole`` at ``edges`` (allocated when None
+    or not of its kind). A part that is one broadcast value (the fixed kernel's) gives a broadcast view; a kernel
+    mask that is None (nowhere) in this slice is False there. ``part`` may be ``whole``'s own slice (an ARK cache
+    edge kept): nothing to copy."""
+    if part is None:
+        if whole is not None:
+            whole[edges] = False
+        return whole
+    if 0 in part.stride() and all(st == 0 or n == 1 for st, n in zip(part.stride(), part.shape)):
+        return part[:1].expand(n_edges, *part.shape[1:])  # an expanded single value (`_uniform`)
+    shape = (n_edges, *part.shape[1:])
+    if whole is None or whole.shape != shape or whole.dtype != part.dtype or 0 in whole.stride():
+        # a mask that first appears in a later slice is False in the slices before it
+        whole = part.new_zeros(shape) if part.dtype == torch.bool else part.new_empty(shape)
+    if part.data_ptr() != whole[edges].data_ptr():
+        whole[edges] = part
+    return whole
+
+
 def _prior_terms(state: BAState, problem: BAProblem, params: BAParams):
     n = state.disparity.shape[0]
     if problem.disp_prior is None or params.alpha_disp <= 0:
@@ -275,7 +325,7 @@ def _linearised(state: BAState, prep: _Prepared, params: BAParams, frozen: _Froz
                 res: _Residuals) -> Iterator[tuple[slice, schur.NormalEquations]]:
     """The normal equations at ``state``: of ``res`` when it holds Jacobians (a problem of one slice), else
     slice by slice, each slice's residuals evaluated again with Jacobians (see ``BAParams.linearise_edges``)."""
-    if res.reproj.jac is not None:
+    if res.reproj is not None and res.reproj.jac is not None:
         yield slice(0, len(prep.ii)), _normal_equations(res, params, frozen)
         return
     for edges in _edge_slices(len(prep.ii), params):
@@ -328,33 +378,29 @@ def run_ba(state: BAState, problem: BAProblem, params: BAParams,
     lm = params.lm_init
     prep = _prepare(problem, params, h, w)
     whole = not _sliced(len(prep.ii), params)  # the Jacobians of every edge at once, kept across rejected steps
-    res = _residuals(state, prep, params, with_jac=whole)
-    ark = _ark(res, prep, params, None)
-    frozen = _frozen(res, params, ark)
+    ev = _evaluate(state, prep, params, whole, None)
     guess = (state.intrinsics[2:].clone() if problem.principal_point is None
              else state.intrinsics.new_tensor(problem.principal_point))
-    costs = [_energy(res, params, frozen) + _prior_energy(state, problem, params, guess)]
+    costs = [ev.energy + _prior_energy(state, problem, params, guess)]
     for it in range(params.iterations):
         prior_h, prior_g, _ = _prior_terms(state, problem, params)
         if params.disp_rel_damping > 0:  # damping, not energy: it slows what no flow constrains (BAParams)
             prior_h = prior_h + params.disp_rel_damping / state.disparity.reshape(n, -1).to(prior_h.dtype) ** 2
         principal = intrinsics.principal_prior(state.intrinsics, guess, params, n)
         camera_prior = None if principal is None else principal[:3]  # (indices, diagonal, gradient)
-        step = schur.solve(_linearised(state, prep, params, frozen, res), prep.ii, prep.jj, n, free, lm,
+        step = schur.solve(_linearised(state, prep, params, ev.frozen, ev.res), prep.ii, prep.jj, n, free, lm,
                            params.pose_eps, params.disp_eps, prior_h, prior_g, intrinsics.count(params), camera_prior)
         trial = _apply(state, step, params, problem.focal_bounds)
         if scale_anchor:
             trial = _rescale(trial, 0, 1, distance)
-        trial_cost = _cost(trial, prep, problem, params, frozen, guess)
+        trial_cost = _cost(trial, prep, problem, params, ev.frozen, guess)
         logger.debug("BA iter %d cost %.6g -> %.6g (lm %.1e)", it, costs[-1], trial_cost, lm)
         if trial_cost < costs[-1]:
             state, lm = trial, lm * params.lm_down
             # after the last iteration only the weights are wanted: no Jacobians
-            res = _residuals(state, prep, params, with_jac=whole and it + 1 < params.iterations)
-            ark = _ark(res, prep, params, ark)
-            frozen = _frozen(res, params, ark)
+            ev = _evaluate(state, prep, params, whole and it + 1 < params.iterations, ev)
             decrease = costs[-1] - trial_cost
-            costs.append(_energy(res, params, frozen) + _prior_energy(state, problem, params, guess))
+            costs.append(ev.energy + _prior_energy(state, problem, params, guess))
             if decrease <= params.rel_tol * costs[0]:
                 break
         else:
@@ -363,12 +409,12 @@ def run_ba(state: BAState, problem: BAProblem, params: BAParams,
                 break
         if should_stop is not None and it + 1 < params.iterations and should_stop():
             break
-    edge_w = _edge_weight(res, frozen, params)
-    static = static_weight(res.flow_norm, res.flow_w, problem.ii, n, params.robust, ark).view(n, h, w)
-    return BAResult(state, costs, edge_w.view(-1, h, w), static, frozen.alpha.reshape(-1, h, w).contiguous())
+    edge_w = _edge_weight(ev.res, ev.frozen, params)
+    static = static_weight(ev.res.flow_norm, ev.res.flow_w, problem.ii, n, params.robust, ev.ark).view(n, h, w)
+    return BAResult(state, costs, edge_w.view(-1, h, w), static, ev.frozen.alpha.reshape(-1, h, w).contiguous())
 
 
 def _edge_weight(res: _Residuals, frozen: _Frozen, params: BAParams) -> torch.Tensor:
     """(E, P) robust IRLS weight c^2 psi(r)/r in [0, 1] of the kernel in use; 0 where the edge is unused."""
     c = params.robust.scale
-    return c**2 * robust.weight(res.flow_norm, frozen.kernel, c) * (res.flow_w > 0).to(res.flow.dtype)
+    return c**2 * robust.weight(res.flow_norm, frozen.kernel, c) * (res.flow_w > 0).to(res.flow_w.dtype)

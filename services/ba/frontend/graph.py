@@ -270,8 +270,9 @@ class KeyframeGraph:
         jj = torch.tensor([local[b] for _, b in pairs], dtype=torch.long, device=dev)
         tg = [self.targets(a, b) for a, b in pairs]
         # as DIS gave them (float32): the solve casts them to its compute dtype, and float64 copies of a global
-        # BA's were 44 MB at 600 edges
-        targets = torch.stack([t.target for t in tg]).to(dev)
+        # BA's were 44 MB at 600 edges. Stacked channels first and handed over as an (E, h, w, 2) view: the
+        # solver works in that layout (ba._prepare), which it then takes without a copy of its own
+        targets = torch.stack([t.target.permute(2, 0, 1) for t in tg]).to(dev).permute(0, 2, 3, 1)
         conf = torch.stack([t.confidence for t in tg]).to(dev)
         codes = None
         if all(self.codes[k] is not None for k in window):
