@@ -77,10 +77,11 @@ class BAParams:
     min_disparity: float = 1e-4  # disparities are clamped to at least this after each update
     compute_dtype: str = "float32"  # per-pixel residuals and Jacobians: "float32" (fast) or "float64" (exact
     # to 1e-12, for tests); poses, the camera system and its Cholesky solve are float64 either way
-    linearise_edges: int = 96  # a problem with more edges is linearised this many edges at a time, each slice's
+    linearise_edges: int = 48  # a problem with more edges is linearised this many edges at a time, each slice's
     # Jacobians summed into the normal equations and freed, and its residuals and trial energies evaluated a slice
     # at a time (0: all at once): a global BA's Jacobians and their intermediates are ~1 GB at 600 edges. Up to it
-    # the Jacobians are kept across a rejected LM step
+    # the Jacobians are kept across a rejected LM step. 48, not 96: lossless KITTI 07's ba peaked 61 MB lower at
+    # the same CPU time (docs/BENCHMARKS.md, forty-first session); 32 cost ba 4 % more CPU
     robust: RobustParams = field(default_factory=RobustParams)
 
     def __post_init__(self) -> None:
