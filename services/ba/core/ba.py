@@ -33,9 +33,11 @@ import torch
 from services.ba.core import ark as ark_codes
 from services.ba.core import embedding, intrinsics, projective, robust, schur, se3
 from services.ba.core.params import BAParams
+from services.ba.core.slice_fields import join_slice
 from services.ba.core.static_weight import static_weight
 
 logger = logging.getLogger(__name__)
+KERNEL_MASKS = ("l2", "cauchy", "welsch")  # robust.Kernel's fields that are None where nowhere
 
 
 class BAProblem(NamedTuple):
@@ -230,44 +232,26 @@ def _evaluate(state: BAState, prep: _Prepared, params: BAParams, with_jac: bool,
     for edges in _edge_slices(n_edges, params):
         part_prep = _edges(prep, edges)
         res = _edge_residuals(state, part_prep, params, False)
-        ark = _ark(res, part_prep, params, None if cache is None else ark_codes.ArkCosine(
-            cache.cosine[edges], cache.valid[edges], cache.coords[edges]))
+        ark = _ark(res, part_prep, params,
+                   None if cache is None else ark_codes.ArkCosine(*(t[edges] for t in cache)))
         frozen = _frozen(res, params, ark)
         energy += _energy(res, params, frozen)
         parts = _fields(res, ark, frozen)
-        whole = [_into(None if whole is None else w, p, edges, n_edges) for w, p in zip(whole or parts, parts)]
+        whole = [join_slice(None if whole is None else w, p, edges, n_edges) for w, p in zip(whole or parts, parts)]
         del res, ark, frozen, parts  # freed before the next slice's are formed
     flow_norm, flow_w, cosine, inside, coords, alpha, *kernel, embed_weight = whole
-    kernel[4:] = [m if m is None or bool(m.any()) else None for m in kernel[4:]]  # masks: None where nowhere
+    kernel = robust.Kernel(*kernel)
+    kernel = kernel._replace(**{name: None for name in KERNEL_MASKS  # a mask that is False everywhere: None
+                                if getattr(kernel, name) is not None and not bool(getattr(kernel, name).any())})
     ark = None if cosine is None else ark_codes.ArkCosine(cosine, inside, coords)
-    return _Evaluated(_Residuals(None, flow_norm, flow_w, None, None), ark,
-                      _Frozen(alpha, robust.Kernel(*kernel), embed_weight), energy)
+    return _Evaluated(_Residuals(None, flow_norm, flow_w, None, None), ark, _Frozen(alpha, kernel, embed_weight),
+                      energy)
 
 
 def _fields(res: _Residuals, ark: ark_codes.ArkCosine | None, frozen: _Frozen) -> tuple:
     """The per-edge fields an evaluation in slices keeps, in the order ``_evaluate`` unpacks them."""
     return (res.flow_norm, res.flow_w, *((None,) * 3 if ark is None else ark), frozen.alpha, *frozen.kernel,
             frozen.embed_weight)
-
-
-def _into(whole: torch.Tensor | None, part: torch.Tensor | None, edges: slice, n_edges: int) -> torch.Tensor | None:
-    """A slice's field ``part`` written into the field of every edge ``whole`` at ``edges`` (allocated when None
-    or not of its kind). A part that is one broadcast value (the fixed kernel's) gives a broadcast view; a kernel
-    mask that is None (nowhere) in this slice is False there. ``part`` may be ``whole``'s own slice (an ARK cache
-    edge kept): nothing to copy."""
-    if part is None:
-        if whole is not None:
-            whole[edges] = False
-        return whole
-    if 0 in part.stride() and all(st == 0 or n == 1 for st, n in zip(part.stride(), part.shape)):
-        return part[:1].expand(n_edges, *part.shape[1:])  # an expanded single value (`_uniform`)
-    shape = (n_edges, *part.shape[1:])
-    if whole is None or whole.shape != shape or whole.dtype != part.dtype or 0 in whole.stride():
-        # a mask that first appears in a later slice is False in the slices before it
-        whole = part.new_zeros(shape) if part.dtype == torch.bool else part.new_empty(shape)
-    if part.data_ptr() != whole[edges].data_ptr():
-        whole[edges] = part
-    return whole
 
 
 def _prior_terms(state: BAState, problem: BAProblem, params: BAParams):
