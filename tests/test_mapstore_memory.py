@@ -17,7 +17,9 @@ import pytest
 from services.common.schema import PcaBasis as PcaMessage
 from services.common.pca_codes import code_map, convert_codes
 from services.mapstore.config import CarvingParams, FusionParams, MapParams
-from services.mapstore.core.fusion import FrozenSums, make_contribution, merge_contributions
+from services.mapstore.core.frozen import FrozenSums
+from services.mapstore.core.fusion import make_contribution, merge_contributions
+from services.mapstore.frozen_files import FileSums
 from services.mapstore.core.map import KeyframeMap, code_maps_to_latest
 from services.mapstore.core.scoring import PcaBasis
 from tests.helpers.carving_scene import BOX, CHAIR, MOVED_BOX, add_keyframe, cam_pose, cell_labels, label_codes, render
@@ -141,9 +143,12 @@ def test_folding_waits_for_a_keyframe_that_is_not_settled():
         m.fold([0])
 
 
-def test_frozen_sums_of_old_pca_versions_are_carried_in_the_current_one():
+@pytest.mark.parametrize("in_files", [False, True], ids=["memory", "files"])
+def test_frozen_sums_of_old_pca_versions_are_carried_in_the_current_one(in_files, tmp_path, monkeypatch):
     """Refits must not multiply the frozen sums: beyond ``frozen_versions`` an old version's sums are converted into
-    the current version (these bases share one subspace, so even the extra projection is exact)."""
+    the current version (these bases share one subspace, so even the extra projection is exact). The same with the
+    sums in files, read and merged in chunks far smaller than a version's sums."""
+    monkeypatch.setattr(FrozenSums, "chunk_rows", 97)
     n = 90
     bases = {v: PcaBasis(v, np.asarray(basis(v).mean, np.float64), np.asarray(basis(v).components, np.float64),
                          "oracle") for v in (1, 2, 3)}
@@ -151,7 +156,8 @@ def test_frozen_sums_of_old_pca_versions_are_carried_in_the_current_one():
     # re-judged: keep it out
 
     def build(fold: bool) -> KeyframeMap:
-        m = KeyframeMap(params, voxel_size=0.1, versioned=True, frozen_versions=1)
+        store = FileSums(tmp_path / f"{fold}.db") if in_files else None
+        m = KeyframeMap(params, voxel_size=0.1, versioned=True, frozen_versions=1, frozen_store=store)
         known: dict[int, PcaBasis] = {}
         for i in range(n):
             version = 1 + 3 * i // n  # a refit after each third of the stream
@@ -168,23 +174,35 @@ def test_frozen_sums_of_old_pca_versions_are_carried_in_the_current_one():
 
     capped, whole = build(True), build(False)
     assert capped.folded_count > 40 and set(capped._frozen) == {3}  # versions 1 and 2 carried in 3
+    assert len(capped._frozen[3]) > 3 * FrozenSums.chunk_rows  # read and merged in several chunks
     assert_same_fused(capped.fused(), whole.fused(), codes_atol=1e-4)
 
 
-def test_frozen_sums_merge_to_the_sum_of_their_parts():
+@pytest.mark.parametrize("in_files", [False, True], ids=["memory", "files"])
+@pytest.mark.parametrize("chunk_rows", [7, 16384])
+def test_frozen_sums_merge_to_the_sum_of_their_parts(in_files, chunk_rows, tmp_path):
     rng = np.random.default_rng(0)
     parts = [make_contribution(rng.normal(size=(50, 3)), rng.uniform(0.1, 1, 50),
                                rng.normal(size=(50, K)).astype(np.float16), rng.integers(0, 255, (50, 3)), 0.5)
              for _ in range(30)]
-    frozen = FrozenSums(min_pending=120)
+    store = FileSums(tmp_path / "map.db") if in_files else None
+    frozen = FrozenSums(store, min_pending=120, chunk_rows=chunk_rows)
     for p in parts:
         frozen.add(p)
+    chunks = list(frozen)
+    assert max(c.keys.size for c in chunks) <= chunk_rows
     got, want = frozen.contribution(), merge_contributions(parts)
-    np.testing.assert_array_equal(got.keys, want.keys)
+    np.testing.assert_array_equal(got.keys, want.keys)  # ascending and distinct across chunks too
     np.testing.assert_allclose(got.weight, want.weight)
+    np.testing.assert_allclose(got.xyz, want.xyz)
     np.testing.assert_allclose(got.codes, want.codes, atol=1e-4)
+    np.testing.assert_allclose(got.colours, want.colours, rtol=1e-5)
     np.testing.assert_array_equal(got.count, want.count)
-    assert len(frozen) == want.keys.size and frozen.nbytes > 0
+    assert len(frozen) == want.keys.size
+    assert (frozen.nbytes_in_memory == 0) == in_files  # merged: in files nothing stays in memory
+    if in_files:
+        frozen.discard()
+        assert not any(store.folder.iterdir())  # runs discarded with their files
 
 
 def _sums_point_by_point(parts, cmaps=None):
@@ -260,11 +278,42 @@ def test_a_grid_recoded_in_a_new_version_equals_its_parts_summed_in_it(k_new, pe
     cmap = CodeMap(rng.normal(size=(k_new, k)), rng.normal(size=k_new))
     cmaps = [cmap if i % 3 or k_new != k else None for i in range(len(parts))]  # some already in the new version
     tracemalloc.start()
-    grid.recode(list(zip(parts, cmaps)), k_new)
+    grid.recode([([p], c) for p, c in zip(parts, cmaps)], k_new)
     peak = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()
     keys, (weight, _, codes, _, _) = _sums_point_by_point(parts, cmaps)
     fused = grid.fused()
     np.testing.assert_array_equal(fused.keys, keys)
     np.testing.assert_allclose(fused.codes, codes / weight[:, None], rtol=1e-4, atol=1e-5)
-    assert peak < peak_limit * grid._codes.nbytes, (peak / grid._codes.nbytes)
+    codes_in_use = grid._codes[: len(grid)].nbytes  # the grid's arrays reserve many more slots (lazily backed)
+    assert peak < peak_limit * codes_in_use, (peak / codes_in_use)
+
+
+def test_a_grown_grid_never_copies_and_its_memory_follows_the_voxels_in_use():
+    """Past its first slots a grid reserves address space for millions of voxels (lazily backed): growing further
+    keeps the same arrays, the process's resident memory grows by about the slots written, not by the reservation,
+    and the sums stay exact."""
+    import psutil
+
+    from services.mapstore.core.fusion import RESERVED_GRID_BYTES, VoxelGrid
+
+    rng = np.random.default_rng(4)
+    k, voxel = 32, 0.01
+    parts = _random_parts(rng, 24, k, rows=6000, voxel=voxel)
+    process = psutil.Process()
+    before = process.memory_info().rss
+    grid = VoxelGrid(k)
+    grid.apply(parts[0], +1)  # past the first 4,096 slots: the reservation
+    codes = grid._codes
+    assert codes.nbytes > RESERVED_GRID_BYTES // 3
+    for p in parts[1:]:
+        grid.apply(p, +1)
+    grown = process.memory_info().rss - before
+    assert grid._codes is codes  # no copy
+    written = len(grid) * (76 + 4 * k)
+    assert grown < 2 * written + (16 << 20), (grown, written)  # not the ~1 GiB reserved
+    keys, (weight, xyz, code_sums, _, count) = _sums_point_by_point(parts)
+    fused = grid.fused()
+    np.testing.assert_array_equal(fused.keys, keys)
+    np.testing.assert_allclose(fused.codes, code_sums / weight[:, None], rtol=1e-4, atol=1e-5)
+    np.testing.assert_array_equal(fused.count, count)

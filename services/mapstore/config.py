@@ -232,6 +232,10 @@ class MapstoreSettings(KmVipeSettings):
     """Flat memory: keyframes that have left ba's graph, have their codes (or come from a real-time stream) and
     are older than the carving window are folded into frozen voxel sums and leave memory (they stay in SQLite).
     False keeps every keyframe in memory (and carving of old points by later views)."""
+    frozen_sums: Literal["files", "memory"] = "files"
+    """Where folded keyframes' voxel sums are kept (core/frozen.py): ``files`` in a folder beside the database
+    (``<db>.frozen-<pid>``, derived state, removed at close; services/mapstore/frozen_files.py), read back a chunk
+    at a time by a PCA refit; ``memory`` in the process. They were the mapstore's largest growing part on a 10,000-frame stream (docs/BENCHMARKS.md)."""
     max_live_keyframes: int = 256
     """Safety bound on the keyframes held in memory: beyond it, the oldest keyframes that have left ba's graph
     are folded even while their codes are still to come (those codes are committed but stay out of the map)."""

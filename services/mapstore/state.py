@@ -52,6 +52,7 @@ from services.mapstore.export import FoldedExports
 from services.mapstore.folding_policy import FoldingPolicy
 from services.mapstore.poselog import PoseLog
 from services.mapstore.sessions import archive_other_session
+from services.mapstore.frozen_files import FileSums
 from services.mapstore.store import MapStore, Thumbnail
 
 if TYPE_CHECKING:
@@ -90,7 +91,8 @@ class MapState(FoldingPolicy):
         if session and stored.meta.get("session") != session:
             self.store.set_meta({"session": session})
         voxel = float(stored.meta["voxel_size"]) if "voxel_size" in stored.meta else None
-        self.map = KeyframeMap(cfg.map_params(), voxel_size=voxel, versioned=True)
+        self.frozen_files = FileSums(path) if cfg.frozen_sums == "files" else None
+        self.map = KeyframeMap(cfg.map_params(), voxel_size=voxel, versioned=True, frozen_store=self.frozen_files)
         self.bases: dict[int, PcaBasis] = stored.bases
         if self.bases:
             self.map.set_code_space(*code_maps_to_latest(self.bases))
@@ -154,6 +156,8 @@ class MapState(FoldingPolicy):
 
     def close(self) -> None:
         self.store.close()
+        if self.frozen_files is not None:
+            self.frozen_files.close()
 
     def for_session(self, session: str) -> "MapState":
         """The state for a message of ``session`` (a mapstore pinned to one stream learns it from its messages):

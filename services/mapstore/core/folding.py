@@ -12,7 +12,8 @@ from typing import Callable
 import numpy as np
 
 from services.common.pca_codes import convert_sums
-from services.mapstore.core.fusion import RECODE_ROWS, Contribution, FrozenSums
+from services.mapstore.core.frozen import FrozenSums
+from services.mapstore.core.fusion import RECODE_ROWS, Contribution
 from services.mapstore.core.snapping import contains, snap_to_surface
 
 log = logging.getLogger(__name__)
@@ -83,7 +84,7 @@ class Folding:
             if entry is not None:
                 contribution = self._snapped(kf_id, *entry)
                 version = entry[1] if contribution.codes is not None else None
-                self._frozen.setdefault(version, FrozenSums()).add(contribution)
+                self._frozen_sums(version).add(contribution)
                 self._frozen_keys = np.union1d(self._frozen_keys, contribution.keys)
             content = self.contents.pop(kf_id, None)
             if content is not None:
@@ -127,13 +128,21 @@ class Folding:
             return
         while len(versions) + (self.code_version in self._frozen) > self.frozen_versions and versions:
             old = versions.pop(0)
-            part, cmap = self._frozen.pop(old).contribution(), self._code_maps[old]
-            codes = np.empty((part.keys.size, cmap.matrix.shape[0]), np.float32)
-            for start in range(0, part.keys.size, RECODE_ROWS):  # float64 sums of a few rows at a time
-                rows = slice(start, start + RECODE_ROWS)
-                codes[rows] = convert_sums(part.codes[rows], part.weight[rows], cmap)
-            self._frozen.setdefault(self.code_version, FrozenSums()).add(dataclasses.replace(part, codes=codes))
+            sums, cmap, into = self._frozen.pop(old), self._code_maps[old], self._frozen_sums(self.code_version)
+            for part in sums:  # a chunk at a time; each converted in float64 a few rows at a time
+                codes = np.empty((part.keys.size, cmap.matrix.shape[0]), np.float32)
+                for start in range(0, part.keys.size, RECODE_ROWS):
+                    rows = slice(start, start + RECODE_ROWS)
+                    codes[rows] = convert_sums(part.codes[rows], part.weight[rows], cmap)
+                into.add(dataclasses.replace(part, codes=codes))
+            sums.discard()
             log.info("frozen sums of PCA version %d carried in version %d", old, self.code_version)
+
+    def _frozen_sums(self, version: int | None) -> FrozenSums:
+        """The frozen sums of one PCA version (None: of keyframes without codes), made on first use."""
+        if version not in self._frozen:
+            self._frozen[version] = FrozenSums(self.frozen_store)
+        return self._frozen[version]
 
     @property
     def frozen_voxels(self) -> int:

@@ -13,17 +13,20 @@ A keyframe whose codes have not arrived contributes geometry and colours only (`
 their own weight and point count per voxel, so a voxel seen only by such keyframes has no code (NaN in
 `FusedVoxels.codes`, ``code_weight`` 0) rather than the zero code, which would decode to the PCA mean.
 
-Folded keyframes (final: no later change can reach them, ``core/map.py``) hand their contribution to a
-`FrozenSums` of their PCA version: one merged contribution per version whose size follows the map (its voxels),
-not the number of keyframes. The grid treats it like any other contribution (a new basis re-sums it through its
-version's map), so folding alone does not change the fused map (snapping at the fold does: core/snapping.py).
+Folded keyframes (final: no later change can reach them, ``core/map.py``) hand their contribution to the
+frozen sums of their PCA version (core/frozen.py): one merged run per version whose size follows the map (its
+voxels), not the number of keyframes. The grid treats it like any other contribution (a new basis re-sums it
+through its version's map, a chunk at a time), so folding alone does not change the fused map (snapping at the
+fold does: core/snapping.py).
 """
 
 from __future__ import annotations
 
+import mmap
+import sys
 from dataclasses import dataclass, fields
 from itertools import repeat
-from typing import NamedTuple
+from typing import Iterable, NamedTuple
 
 import numpy as np
 
@@ -142,52 +145,6 @@ def _summed(parts: list[Contribution]) -> Contribution:
     return Contribution(sk[starts], *(total(f.name) for f in fields(Contribution) if f.name != "keys"))
 
 
-class FrozenSums:
-    """The summed contributions of the folded keyframes of one PCA version (or of those without codes).
-
-    Added contributions wait in a list and are merged (sort by key, sum) once they hold as many voxels as a
-    quarter of the merged part (at least ``min_pending``): memory stays within 1.25× the voxels this version
-    touched, and each voxel is re-sorted O(log) times over a stream.
-    """
-
-    def __init__(self, min_pending: int = 4096) -> None:
-        self._merged: Contribution | None = None
-        self._pending: list[Contribution] = []
-        self._pending_rows = 0
-        self.min_pending = min_pending
-
-    def add(self, c: Contribution) -> None:
-        """Add one keyframe's contribution (its sums in this part's version)."""
-        self._pending.append(c)
-        self._pending_rows += c.keys.size
-        merged_rows = 0 if self._merged is None else self._merged.keys.size
-        if self._pending_rows >= max(self.min_pending, merged_rows // 4):
-            self._merge()
-
-    def _merge(self) -> None:
-        if self._pending:
-            self._merged = merge_contributions(([self._merged] if self._merged is not None else []) + self._pending)
-            self._pending, self._pending_rows = [], 0
-
-    def contribution(self) -> Contribution:
-        """Everything added, as one contribution (distinct keys)."""
-        self._merge()
-        if self._merged is None:
-            raise ValueError("nothing folded into these sums yet")
-        return self._merged
-
-    def __len__(self) -> int:
-        """Voxels held (merged, plus the rows still pending)."""
-        return (0 if self._merged is None else self._merged.keys.size) + self._pending_rows
-
-    @property
-    def nbytes(self) -> int:
-        """Bytes of the arrays held."""
-        parts = ([self._merged] if self._merged is not None else []) + self._pending
-        return sum(a.nbytes for p in parts for a in (p.keys, p.weight, p.xyz, p.codes, p.colours, p.count)
-                   if a is not None)
-
-
 class FusedVoxels(NamedTuple):
     """The fused map: one point per occupied voxel (N voxels)."""
 
@@ -202,27 +159,51 @@ class FusedVoxels(NamedTuple):
     # no code); None: every voxel has one (a map built elsewhere)
 
 
+RESERVED_GRID_BYTES = 1 << 30  # address space a grown grid reserves for its slots (only written pages use memory)
+_MAP_NORESERVE = 0x4000 if sys.platform.startswith("linux") else 0  # no swap accounted for the untouched part
+
+
+def lazy_zeros(shape: tuple[int, ...], dtype) -> np.ndarray:
+    """A zeroed array in an anonymous memory map of its own: the kernel gives a page memory when it is first
+    written, so an array reserved far larger than it is used costs the memory of the part in use, and freeing it
+    returns its pages at once instead of leaving a hole in the heap. Plain zeros where the map cannot be made
+    (strict overcommit)."""
+    size = int(np.prod(shape))
+    try:
+        buffer = mmap.mmap(-1, max(size * np.dtype(dtype).itemsize, 1),
+                           flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS | _MAP_NORESERVE)
+    except OSError:
+        return np.zeros(shape, dtype)
+    return np.frombuffer(buffer, dtype, count=size).reshape(shape)
+
+
 class VoxelGrid:
-    """Slot-based accumulators for voxel sums, keyed by packed voxel coordinates."""
+    """Slot-based accumulators for voxel sums, keyed by packed voxel coordinates.
+
+    A grid that outgrows its first ``initial_capacity`` slots reserves `RESERVED_GRID_BYTES` of slots in lazily
+    backed arrays (`lazy_zeros`): slots are handed out in order (freed ones first), so memory follows the voxels in
+    use, and growing does not copy. Growing by copies held the old and new arrays at once (the mapstore's
+    10,000-frame map: 69,984 → 104,976 slots for 72,525 voxels at frame ~3,000) and left the old ones as a hole in
+    the heap."""
 
     def __init__(self, code_dim: int, initial_capacity: int = 4096) -> None:
         self.code_dim = code_dim
         self._slot_of: dict[int, int] = {}
         self._free: list[int] = []
         self._used = 0
-        self._alloc(initial_capacity)
+        self._alloc(initial_capacity, np.zeros)
 
-    def _alloc(self, cap: int) -> None:
+    def _alloc(self, cap: int, zeros=lazy_zeros) -> None:
         old = getattr(self, "_weight", None)
         fields = {"_keys": ((cap,), np.int64), "_weight": ((cap,), np.float64), "_xyz": ((cap, 3), np.float64),
                   "_codes": ((cap, self.code_dim), np.float32), "_colours": ((cap, 3), np.float32),
                   "_count": ((cap,), np.int64), "_code_weight": ((cap,), np.float64),
                   "_code_count": ((cap,), np.int64)}
         for name, (shape, dtype) in fields.items():
-            arr = np.zeros(shape, dtype)
+            arr = zeros(shape, dtype)
             if old is not None:
                 prev = getattr(self, name)
-                arr[: prev.shape[0]] = prev
+                arr[: self._used] = prev[: self._used]
             setattr(self, name, arr)
 
     def _slots(self, keys: np.ndarray) -> np.ndarray:
@@ -241,7 +222,8 @@ class VoxelGrid:
 
     def _new_slot(self) -> int:
         if self._used == self._keys.shape[0]:
-            self._alloc(max(self._keys.shape[0] * 3 // 2, 16))  # old and new coexist while copying: 2.5x, not 3x
+            slot_bytes = 76 + 4 * self.code_dim  # the fields of _alloc
+            self._alloc(max(self._keys.shape[0] * 3 // 2, 16, RESERVED_GRID_BYTES // slot_bytes))
         self._used += 1
         return self._used - 1
 
@@ -279,32 +261,36 @@ class VoxelGrid:
 
     def set_code_dim(self, code_dim: int) -> None:
         """Give a grid that has no code sums yet (only keyframes without codes fused so far) its code size."""
-        if self._code_count.any():
+        if self._code_count[: self._used].any():
             raise ValueError("the grid already holds code sums; use recode to change their size")
         self.code_dim = code_dim
-        self._codes = np.zeros((self._keys.shape[0], code_dim), np.float32)
+        self._codes = lazy_zeros((self._keys.shape[0], code_dim), np.float32)
 
-    def recode(self, parts: list[tuple[Contribution, CodeMap | None]], code_dim: int) -> None:
+    def recode(self, parts: list[tuple[Iterable[Contribution], CodeMap | None]], code_dim: int) -> None:
         """Re-sum every voxel's codes in a new version (``code_dim`` = its K) from all the contributions with
         codes now applied, each with the map from its own version; weights, positions and colours are untouched.
-        A few columns and rows at a time, into the grid's own code array where K is unchanged: the whole grid's
-        float64 codes and each part's converted sums at once were several times the grid's codes, at every PCA
-        refit of a growing map (the mapstore's high-water)."""
-        coded = [(self._slots(c.keys), c, None if cmap is None or cmap.is_identity else cmap)
-                 for c, cmap in parts if c.codes is not None]
+        Each part is an iterable of contributions (a live keyframe's one, or frozen sums' chunks), read once per
+        few columns. A few columns and rows at a time, into the grid's own code array where K is unchanged: the
+        whole grid's float64 codes and each part's converted sums at once were several times the grid's codes, at
+        every PCA refit of a growing map (the mapstore's high-water)."""
+        coded = [(chunks, None if cmap is None or cmap.is_identity else cmap) for chunks, cmap in parts]
         if self._codes.shape[1] != code_dim:
             self._codes = None  # freed before its successor is allocated
-            self._codes = np.zeros((self._keys.shape[0], code_dim), np.float32)
+            self._codes = lazy_zeros((self._keys.shape[0], code_dim), np.float32)
         self.code_dim = code_dim
         for col in range(0, code_dim, SUM_COLUMNS):
             cols = slice(col, min(col + SUM_COLUMNS, code_dim))
-            block = np.zeros((self._keys.shape[0], cols.stop - cols.start), np.float64)
-            for slots, c, cmap in coded:
-                for start in range(0, c.keys.size, RECODE_ROWS):
-                    rows = slice(start, start + RECODE_ROWS)
-                    block[slots[rows]] += (c.codes[rows, cols] if cmap is None
-                                           else convert_sums(c.codes[rows], c.weight[rows], cmap, cols))
-            self._codes[:, cols] = block
+            block = np.zeros((self._used, cols.stop - cols.start), np.float64)  # slots past _used never given
+            for chunks, cmap in coded:
+                for c in chunks:
+                    if c.codes is None:
+                        continue
+                    slots = self._slots(c.keys)
+                    for start in range(0, c.keys.size, RECODE_ROWS):
+                        rows = slice(start, start + RECODE_ROWS)
+                        block[slots[rows]] += (c.codes[rows, cols] if cmap is None
+                                               else convert_sums(c.codes[rows], c.weight[rows], cmap, cols))
+            self._codes[: self._used, cols] = block
 
     def __len__(self) -> int:
         return len(self._slot_of)

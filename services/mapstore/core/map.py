@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import logging
 from bisect import bisect_left
-from typing import NamedTuple
+from typing import Iterable, NamedTuple
 
 import numpy as np
 
@@ -44,7 +44,8 @@ from services.mapstore.core.carving import CarveView
 from services.mapstore.core.consistency import NeighbourView, depth_consistency
 from services.mapstore.core.carving_views import Carving
 from services.mapstore.core.folding import Folding
-from services.mapstore.core.fusion import Contribution, FrozenSums, FusedVoxels, VoxelGrid, make_contribution
+from services.mapstore.core.frozen import FrozenSums, SumsStore
+from services.mapstore.core.fusion import Contribution, FusedVoxels, VoxelGrid, make_contribution
 from services.mapstore.core.keyframe import KeyframeContent, KeyframeDepth, candidate_points, world_points
 from services.mapstore.core.scoring import PcaBasis
 
@@ -80,7 +81,7 @@ class KeyframeMap(Carving, Folding):
     """Mutable map state; no I/O. Feed it keyframe content, depths and poses, then `refresh()`."""
 
     def __init__(self, params: MapParams, voxel_size: float | None = None, versioned: bool = False,
-                 frozen_versions: int = 8) -> None:
+                 frozen_versions: int = 8, frozen_store: SumsStore | None = None) -> None:
         """
         Args:
             params: the map parameters.
@@ -89,8 +90,10 @@ class KeyframeMap(Carving, Folding):
             versioned: hold every keyframe until `set_code_space` gives a map for its PCA version; False fuses
                 codes as they come (for callers whose keyframes share one version).
             frozen_versions: PCA versions whose folded sums are kept apart (older ones merge into the current).
+            frozen_store: where the folded sums' merged rows are kept (core/frozen.py); None: in memory.
         """
         self.frozen_versions = frozen_versions
+        self.frozen_store = frozen_store
         self.versioned = versioned
         self.params = params
         self.contents: dict[int, KeyframeContent] = {}
@@ -210,7 +213,7 @@ class KeyframeMap(Carving, Folding):
         self._unit_codes.clear()
         self._views.clear()
         if self._grid is not None:
-            self._grid.recode([(c, self._code_maps[v]) for c, v in self._parts() if v is not None],
+            self._grid.recode([(chunks, self._code_maps[v]) for chunks, v in self._parts() if v is not None],
                               maps[version].matrix.shape[0])
         for kf_id in held:
             if self._is_ready(kf_id):
@@ -340,13 +343,15 @@ class KeyframeMap(Carving, Folding):
             cmap = self._code_maps.get(version)
             if self._grid is None:
                 self._grid = VoxelGrid(self._code_dim(None, cmap))
-            self._grid.apply(part.contribution(), +1, cmap)
+            for chunk in part:
+                self._grid.apply(chunk, +1, cmap)
         self._dirty = {k for k in set(self.contents) | set(self.depths) | set(self.poses) if k > self.folded_upto}
         self.revision += 1
         self._fused_cache = None
         return self.refresh()
 
     # ----- folding ------------------------------------------------------------------------
-    def _parts(self) -> list[tuple[Contribution, int | None]]:
-        """Every contribution in the grid with its PCA version: the live keyframes' and the frozen sums."""
-        return list(self._contrib.values()) + [(f.contribution(), v) for v, f in self._frozen.items()]
+    def _parts(self) -> list[tuple[Iterable[Contribution], int | None]]:
+        """Every contribution in the grid with its PCA version, as iterables of contributions: each live
+        keyframe's (one), and the frozen sums of each version (in chunks)."""
+        return [([c], v) for c, v in self._contrib.values()] + [(f, v) for v, f in self._frozen.items()]
