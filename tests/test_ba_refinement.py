@@ -329,7 +329,9 @@ def test_after_background_bas_the_end_of_stream_ba_spans_the_keyframes_since_the
 
     world, msgs = synth_stream(n_frames=60, rendered=36, every=3, width=256)
     params = FrontendParams(graph=GraphParams(window=3), background_ba_every=4, focal_after=1000,
-                            global_ba=BAParams(iterations=3), settle_all_keyframes=settle_all)
+                            global_ba=BAParams(iterations=3), settle_all_keyframes=settle_all,
+                            background_ba_s=0.0, settled_global_ba_s=0.0)  # no time bounds: on a loaded machine
+    # they cut BAs short, and what moved would depend on its speed
     fe = Frontend(params)
     for msg in msgs[:-1]:
         if isinstance(msg, Keyframe):
