@@ -1,11 +1,11 @@
 """Frozen sums: the summed contributions of folded keyframes, one `FrozenSums` per PCA version (core/folding.py).
 
-Nothing but a PCA refit, the compaction of an old version or a rebuild reads them again, and then a few thousand
-rows at a time; so their merged rows live in a `SumsStore` the caller gives. `MemorySums` (the default) holds
-them as arrays; ``services/mapstore/frozen_files.py`` keeps them in files beside the map's database, out of the
-process's memory: on a 10,000-frame stream they were the mapstore's largest growing part (26k → 122k rows,
-docs/BENCHMARKS.md). Every read and every merge handles `chunk_rows` rows at a time, so neither ever holds a
-version's whole sums.
+Nothing but a PCA refit, the compaction of an old version or a rebuild reads them again, so their merged rows
+live in a `SumsStore` the caller gives. `MemorySums` (the default) holds them as arrays;
+``services/mapstore/frozen_files.py`` keeps them in files beside the map's database, out of the process's memory:
+on a 10,000-frame stream they were the mapstore's largest growing part (26k → 122k rows, docs/BENCHMARKS.md).
+Every read and every merge handles `chunk_rows` (16,384) rows at a time, so with files neither ever holds a
+version's whole sums (an in-memory merge held ~4 copies of them).
 """
 from __future__ import annotations
 
