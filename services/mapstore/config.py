@@ -235,7 +235,8 @@ class MapstoreSettings(KmVipeSettings):
     frozen_sums: Literal["files", "memory"] = "files"
     """Where folded keyframes' voxel sums are kept (core/frozen.py): ``files`` in a folder beside the database
     (``<db>.frozen-<pid>``, derived state, removed at close; services/mapstore/frozen_files.py), read back a chunk
-    at a time by a PCA refit; ``memory`` in the process. They were the mapstore's largest growing part on a 10,000-frame stream (docs/BENCHMARKS.md)."""
+    at a time by a PCA refit; ``memory`` in the process. They were the mapstore's largest growing part on a
+    10,000-frame stream (docs/BENCHMARKS.md)."""
     max_live_keyframes: int = 256
     """Safety bound on the keyframes held in memory: beyond it, the oldest keyframes that have left ba's graph
     are folded even while their codes are still to come (those codes are committed but stay out of the map)."""

@@ -14,6 +14,7 @@ import dataclasses
 import itertools
 import os
 import shutil
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Iterable, NamedTuple
 
@@ -58,25 +59,22 @@ class FileSums:
         return self.folder / f"{number}.{name}"
 
     def write(self, chunks: Iterable[Contribution]) -> _Run:
-        number, rows, layout, files = next(self._numbers), 0, None, {}
-        try:
-            for chunk in chunks:
-                if layout is None:
-                    layout = {name: None if getattr(chunk, name) is None
-                              else (getattr(chunk, name).dtype, getattr(chunk, name).shape[1:]) for name in _FIELDS}
-                    for name in (n for n in _FIELDS if layout[n]):
-                        files[name] = open(self._path(number, name), "wb")
-                for name, f in files.items():
-                    np.ascontiguousarray(getattr(chunk, name), layout[name][0]).tofile(f)
-                rows += chunk.keys.size
-        except BaseException:
-            for f in files.values():
-                f.close()
-            for name in files:
-                self._path(number, name).unlink(missing_ok=True)
-            raise
-        for f in files.values():
-            f.close()
+        number, rows, layout = next(self._numbers), 0, None
+        with ExitStack() as files:
+            try:
+                for chunk in chunks:
+                    if layout is None:
+                        layout = {name: None if getattr(chunk, name) is None else
+                                  (getattr(chunk, name).dtype, getattr(chunk, name).shape[1:]) for name in _FIELDS}
+                        out = {name: files.enter_context(open(self._path(number, name), "wb"))
+                               for name in _FIELDS if layout[name]}
+                    for name, f in out.items():
+                        np.ascontiguousarray(getattr(chunk, name), layout[name][0]).tofile(f)
+                    rows += chunk.keys.size
+            except BaseException:  # no partial run is left behind (a full disk)
+                files.close()
+                self.discard(_Run(number, rows, layout or {}))
+                raise
         if layout is None:
             raise ValueError("a run needs at least one chunk")
         return _Run(number, rows, layout)

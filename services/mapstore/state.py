@@ -50,9 +50,9 @@ from services.mapstore.core.map import KeyframeMap, code_maps_to_latest
 from services.mapstore.core.scoring import PcaBasis
 from services.mapstore.export import FoldedExports
 from services.mapstore.folding_policy import FoldingPolicy
+from services.mapstore.frozen_files import FileSums
 from services.mapstore.poselog import PoseLog
 from services.mapstore.sessions import archive_other_session
-from services.mapstore.frozen_files import FileSums
 from services.mapstore.store import MapStore, Thumbnail
 
 if TYPE_CHECKING:
