@@ -36,6 +36,7 @@ def one(keyframes: int, radius: int, h: int, w: int, slices: int, iters: int) ->
     win = synthetic.make_window(n=keyframes, h=h, w=w, focal=0.55 * w, radius=radius, seed=0)
     gen = torch.Generator().manual_seed(1)
     codes = torch.randn(keyframes, h, w, 32, generator=gen)  # ARK samples them: the service's global BA has codes
+    codes = codes.permute(0, 3, 1, 2).contiguous().permute(0, 2, 3, 1)  # stored channels first, as graph.run does
     problem = win.problem._replace(codes=codes)
     start = ba.BAState(synthetic.perturb_poses(win.truth.poses, 0.01, 0.5, gen), win.truth.disparity * 1.1,
                        win.truth.intrinsics)

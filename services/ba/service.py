@@ -40,6 +40,7 @@ from services.common.pca_codes import code_map, convert_codes
 from services.common.pca_fetch import BasisFetch
 from services.common.bus import Delivery, Inbox
 from services.common.lifecycle import MemoryRelease, nice_this_thread
+from services.common.own_pages import own_pages
 from services.common.restarts import consumer_name
 from services.common.streams import hold, session_of
 from services.common.schema import Credit, Eos, FrameLite, Keyframe, KeyframeCodes, Message, PcaBasis
@@ -141,7 +142,7 @@ def handle_codes(state: BaState, msg: KeyframeCodes, cfg: BaSettings) -> Outputs
     graph = state.frontend.graph
     if graph is not None and msg.seq in graph.seqs:
         k = graph.index(msg.seq)
-        graph.native_codes[k] = NativeCodes(msg.pca_version, msg.codes)
+        graph.native_codes[k] = NativeCodes(msg.pca_version, own_pages(msg.codes))
         graph.codes[k] = _as_tensor(_in_current_version(state, graph.native_codes[k]))
     elif graph is None or not graph.seqs or msg.seq > graph.seqs[-1]:
         state.early_codes[msg.seq] = msg  # its keyframe is still on the way (another key)
@@ -208,7 +209,7 @@ def handle_pca(state: BaState, msg: PcaBasis, cfg: BaSettings) -> Outputs:
 
 
 def _as_tensor(codes: np.ndarray | None) -> torch.Tensor | None:
-    return None if codes is None else torch.from_numpy(np.asarray(codes, np.float32))
+    return None if codes is None else torch.from_numpy(own_pages(np.asarray(codes, np.float32)))
 
 
 def handle_eos(state: BaState, msg: Eos, cfg: BaSettings, publish: Callable[[Outputs], None] | None = None) -> Outputs:

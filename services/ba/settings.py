@@ -46,6 +46,9 @@ class BaSettings(BASettings):
     ark_with_focal: bool = FrontendParams.ark_with_focal
     """BAs that refine the focal (up to ``focal_until`` keyframes) solve with ARK where codes are in; false: with
     the fixed kernel until the focal is frozen (the codes still give the static weights)."""
+    window_ark_per_edge: bool = FrontendParams.window_ark_per_edge
+    """A keyframe's window BA uses ARK on the edges whose codes are in while the newest keyframe's are on their
+    way; false: only once the whole window has codes (background and end-of-stream BAs always go per edge)."""
     focal_until: int = FrontendParams.focal_until
     """Freeze the focal length after this many keyframes."""
     init_keyframes: int = InitParams.min_keyframes
@@ -239,7 +242,8 @@ class BaSettings(BASettings):
             ba=self.ba_params(), weak_keyframe_gap=self.weak_keyframe_gap,
             burst_gap=self.burst_gap,
             global_ba=self.ba_params(global_ba=True), flow=self.flow_params(), focal_after=self.focal_after,
-            focal_until=self.focal_until, ark_with_focal=self.ark_with_focal, keep_keyframes=self.keep_keyframes,
+            focal_until=self.focal_until, ark_with_focal=self.ark_with_focal,
+            window_ark_per_edge=self.window_ark_per_edge, keep_keyframes=self.keep_keyframes,
             landmark_keyframes=self.landmark_keyframes,
             live_flow_downscale=self.live_flow_downscale, live_iterations=self.live_iterations,
             keyframe_flow_downscale=self.keyframe_flow_downscale,

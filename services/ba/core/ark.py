@@ -31,7 +31,8 @@ def sample(codes: torch.Tensor, ii: torch.Tensor, jj: torch.Tensor, coords: torc
     """Cosine similarity for every edge.
 
     Args:
-        codes: ``(N, h, w, K)`` float code maps.
+        codes: ``(N, h, w, K)`` float code maps; fastest as a view of channels-first ``(N, K, h, w)`` storage,
+            which this samples without a copy (``ba._prepare``).
         ii, jj: ``(E,)`` long source / target keyframe of each edge.
         coords: ``(E, 2, P)`` reprojections of the source grid pixels into the target (grid px).
     """
@@ -39,19 +40,32 @@ def sample(codes: torch.Tensor, ii: torch.Tensor, jj: torch.Tensor, coords: torc
     if coords.shape[1:] != (2, h * w) or ii.shape != jj.shape or coords.shape[0] != ii.shape[0]:
         raise ValueError(f"coords (E, 2, {h * w}) and ii, jj (E,) expected, got {tuple(coords.shape)}, "
                          f"{tuple(ii.shape)}, {tuple(jj.shape)}")
-    flat = codes.reshape(n, h * w, k)
+    # channels first, for grid_sample: ~3x faster than embedding.bilinear_sample's corner gathers, which the
+    # embedding term keeps for their exact derivatives (an ARK sample of every edge was a quarter of a background
+    # BA's time)
+    maps = codes.permute(0, 3, 1, 2).contiguous()  # no copy when the storage is channels first already
+    flat = maps.view(n, k, h * w)
+    scale = coords.new_tensor([2.0 / max(w - 1, 1), 2.0 / max(h - 1, 1)])[:, None]
     # the outputs exist before the chunks' temporaries: small per-chunk results kept between them sat in the freed
     # heap and pushed every next chunk's temporaries above it (a 100-keyframe global BA peaked ~70 MB higher)
     cosine = coords.new_empty((len(ii), h * w))
     valid = torch.empty((len(ii), h * w), dtype=torch.bool, device=coords.device)
-    # a few edges at a time: a sample holds ~10 (E, P, K) temporaries, GBs for an end-of-stream BA's edges at once
+    # a few edges at a time: a sample holds a few (E, K, P) temporaries, GBs for an end-of-stream BA's edges at once
     for start in range(0, len(ii), EDGE_CHUNK):
         part = slice(start, start + EDGE_CHUNK)
-        values = embedding.bilinear_sample(codes, jj[part], coords[part].transpose(1, 2), derivatives=False)
-        res = embedding.embedding_residual(flat[ii[part]], values)
-        cosine[part] = res.cosine
-        valid[part] = res.valid
-        del values, res  # freed before the next chunk's temporaries are allocated
+        # a point behind a camera projects to NaN: sampled at the border, and not valid
+        at = torch.nan_to_num(coords[part], nan=-1.0, posinf=-1.0, neginf=-1.0)
+        x, y = at[:, 0], at[:, 1]
+        valid[part] = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
+        grid = (at * scale - 1).transpose(1, 2)[:, None].to(maps.dtype)  # (e, 1, P, 2) in [-1, 1]
+        values = torch.nn.functional.grid_sample(maps.index_select(0, jj[part]), grid, mode="bilinear",
+                                                 padding_mode="border", align_corners=True)[:, :, 0]
+        source = flat.index_select(0, ii[part])
+        # sums of squares, not norm(dim=1): torch's norm over the strided channel axis is ~30x slower on CPU
+        norms = (source.square().sum(1).sqrt_().clamp_min_(embedding.TINY)
+                 * values.square().sum(1).sqrt_().clamp_min_(embedding.TINY))
+        cosine[part] = ((source * values).sum(1) / norms).clamp(-1, 1)
+        del values, source, norms  # freed before the next chunk's temporaries are allocated
     # coords is a fresh tensor of the caller's evaluation, never written in place: kept without a copy
     return ArkCosine(cosine, valid, coords)
 

@@ -54,6 +54,9 @@ class BAProblem(NamedTuple):
     # so a focal pushed against a bound still lets poses and depth converge (a result is never thrown away for it)
     principal_point: tuple[float, float] | None = None  # (cx, cy) grid px the principal point's prior pulls to
     # (BAParams.principal_point_sigma); None: where this solve starts
+    coded: torch.Tensor | None = None  # (N,) bool: the keyframes whose codes are in ``codes`` (the others' are
+    # placeholders): only edges between two of them use ARK and the embedding term, the rest the fixed kernel.
+    # None: every keyframe's
 
 
 class BAState(NamedTuple):
@@ -84,6 +87,8 @@ def _check(state: BAState, problem: BAProblem) -> None:
         raise ValueError(f"edges (E,), targets (E,{h},{w},2), confidence (E,{h},{w}) expected")
     if problem.codes is not None and problem.codes.shape[:3] != (n, h, w):
         raise ValueError(f"codes must be ({n},{h},{w},K), got {tuple(problem.codes.shape)}")
+    if problem.coded is not None and (problem.coded.shape != (n,) or problem.coded.dtype != torch.bool):
+        raise ValueError(f"coded must be ({n},) bool, got {tuple(problem.coded.shape)} {problem.coded.dtype}")
 
 
 class _Prepared(NamedTuple):
@@ -95,6 +100,7 @@ class _Prepared(NamedTuple):
     confidence: torch.Tensor  # (E, P)
     pixels: torch.Tensor  # (P, 2)
     codes: torch.Tensor | None  # (N, h, w, K) float32 or float64
+    coded: torch.Tensor | None  # (E,) bool: edges whose two keyframes have codes (None: every edge, or no codes)
 
 
 def _prepare(problem: BAProblem, params: BAParams, h: int, w: int) -> _Prepared:
@@ -105,13 +111,19 @@ def _prepare(problem: BAProblem, params: BAParams, h: int, w: int) -> _Prepared:
     codes = problem.codes
     if codes is not None and codes.dtype not in (torch.float32, torch.float64):
         codes = codes.float()  # half precision arithmetic is slow or missing on CPUs
+    if codes is not None and params.lambda_embed <= 0:  # ARK alone samples them: channels-first storage
+        # (ark.sample), copied once here unless the caller's already is (KeyframeGraph.run)
+        codes = codes.permute(0, 3, 1, 2).contiguous().permute(0, 2, 3, 1)
+    coded = None
+    if codes is not None and problem.coded is not None and not bool(problem.coded.all()):
+        coded = problem.coded[problem.ii] & problem.coded[problem.jj]
     return _Prepared(problem.ii, problem.jj, targets, problem.confidence.reshape(e, -1).to(dtype),
-                     projective.pixel_grid(h, w, dtype, dev), codes)
+                     projective.pixel_grid(h, w, dtype, dev), codes, coded)
 
 
 def _edges(prep: _Prepared, edges: slice) -> _Prepared:
     return prep._replace(ii=prep.ii[edges], jj=prep.jj[edges], targets=prep.targets[edges],
-                         confidence=prep.confidence[edges])
+                         confidence=prep.confidence[edges], coded=None if prep.coded is None else prep.coded[edges])
 
 
 def _sliced(n_edges: int, params: BAParams) -> bool:
@@ -165,20 +177,28 @@ class _Frozen(NamedTuple):
 def _ark(res: _Residuals, prep: _Prepared, params: BAParams,
          cache: ark_codes.ArkCosine | None) -> ark_codes.ArkCosine | None:
     """Code cosine at the current reprojections (None without ARK or codes): from the embedding residual when
-    that term is on (it is evaluated anyway), else from the lazily refreshed cache."""
+    that term is on (it is evaluated anyway), else from the lazily refreshed cache. An edge without codes at both
+    ends has no valid cosine (its pixels are no evidence for ``static_weight``)."""
     if not params.robust.use_ark or prep.codes is None:
         return None
     coords = res.reproj.coords
     if res.embed is not None:
-        return ark_codes.ArkCosine(res.embed.cosine, res.embed.valid, coords)
-    return ark_codes.refresh(cache, prep.codes, prep.ii, prep.jj, coords, res.reproj.valid,
-                             params.robust.ark_refresh_px)
+        ark = ark_codes.ArkCosine(res.embed.cosine, res.embed.valid, coords)
+    else:
+        ark = ark_codes.refresh(cache, prep.codes, prep.ii, prep.jj, coords, res.reproj.valid,
+                                params.robust.ark_refresh_px)
+    return ark if prep.coded is None else ark._replace(valid=ark.valid & prep.coded[:, None])
 
 
-def _frozen(res: _Residuals, params: BAParams, ark: ark_codes.ArkCosine | None) -> _Frozen:
+def _frozen(res: _Residuals, params: BAParams, ark: ark_codes.ArkCosine | None,
+            coded: torch.Tensor | None = None) -> _Frozen:
+    """The IRLS quantities of evaluated residuals; ``coded`` (E,) bool: the edges with codes at both ends (None:
+    all), the others keep the fixed kernel and have no embedding term."""
     rob = params.robust
     if ark is not None and rob.ark_in_solve:
         alpha = robust.ark_shape(ark.cosine, rob)  # today's centred map or the paper's (RobustParams.ark_mode)
+        if coded is not None:
+            alpha = torch.where(coded[:, None], alpha, alpha.new_tensor(rob.fixed_alpha))
         kern = robust.kernel(alpha, alpha.dtype, alpha.device)
     else:  # one shape everywhere: its constants formed once and broadcast (views), not ~6 (E, P) tensors
         alpha, kern = _uniform(res.flow_w, rob.fixed_alpha)
@@ -189,7 +209,8 @@ def _frozen(res: _Residuals, params: BAParams, ark: ark_codes.ArkCosine | None) 
     # pull the geometry just as its flow does.
     static = rob.scale**2 * robust.weight(res.flow_norm, kern, rob.scale)
     same = torch.sigmoid((res.embed.cosine - rob.kappa) / rob.tau)
-    return _Frozen(alpha, kern, params.lambda_embed * res.flow_w * res.embed.valid * static * same)
+    weight = params.lambda_embed * res.flow_w * res.embed.valid * static * same
+    return _Frozen(alpha, kern, weight if coded is None else weight * coded[:, None])
 
 
 def _uniform(like: torch.Tensor, alpha: float) -> tuple[torch.Tensor, robust.Kernel]:
@@ -225,7 +246,7 @@ def _evaluate(state: BAState, prep: _Prepared, params: BAParams, with_jac: bool,
     if with_jac or not _sliced(len(prep.ii), params):
         res = _edge_residuals(state, prep, params, with_jac)
         ark = _ark(res, prep, params, cache)
-        frozen = _frozen(res, params, ark)
+        frozen = _frozen(res, params, ark, prep.coded)
         return _Evaluated(res, ark, frozen, _energy(res, params, frozen))
     n_edges, energy = len(prep.ii), 0.0
     whole = None if previous is None else list(_fields(previous.res, previous.ark, previous.frozen))
@@ -234,7 +255,7 @@ def _evaluate(state: BAState, prep: _Prepared, params: BAParams, with_jac: bool,
         res = _edge_residuals(state, part_prep, params, False)
         ark = _ark(res, part_prep, params,
                    None if cache is None else ark_codes.ArkCosine(*(t[edges] for t in cache)))
-        frozen = _frozen(res, params, ark)
+        frozen = _frozen(res, params, ark, part_prep.coded)
         energy += _energy(res, params, frozen)
         parts = _fields(res, ark, frozen)
         whole = [join_slice(None if whole is None else w, p, edges, n_edges) for w, p in zip(whole or parts, parts)]

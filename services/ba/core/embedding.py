@@ -10,7 +10,7 @@ from typing import NamedTuple
 import torch
 
 # Guard for norms / chordal residual near zero.
-_TINY = 1e-12
+TINY = 1e-12
 
 
 class CodeSample(NamedTuple):
@@ -76,8 +76,8 @@ def embedding_residual(source_codes: torch.Tensor, sample: CodeSample, form: str
     unit vectors). ``cs`` is the cosine similarity.
     """
     a, yv = source_codes, sample.values
-    na = a.norm(dim=-1).clamp_min(_TINY)
-    ny = yv.norm(dim=-1).clamp_min(_TINY)
+    na = a.norm(dim=-1).clamp_min(TINY)
+    ny = yv.norm(dim=-1).clamp_min(TINY)
     cs = (a * yv).sum(-1) / (na * ny)
     if sample.d_dx is None:
         residual = 1 - cs if form == "angular" else torch.sqrt((2 * (1 - cs)).clamp_min(0))

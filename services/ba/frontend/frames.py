@@ -26,6 +26,7 @@ from services.ba.core.host_arrays import as_numpy
 from services.ba.frontend import motion
 from services.ba.frontend.graph import STILL_STEP, KeyframeGraph, Targets
 from services.ba.frontend.params import MotionParams
+from services.common.own_pages import own_pages
 
 logger = logging.getLogger(__name__)
 
@@ -125,7 +126,7 @@ class FramePoses:
             ft = core_flow.flow_targets(keyframe, image, params)
             # as tracking's: forward-backward consistency alone trusts DIS's smooth flow over a blank view
             confidence = ft.confidence * core_flow.photometric_agreement(keyframe, image, ft.target, params.grid)
-            frame.targets[seq] = Targets(torch.from_numpy(ft.target), torch.from_numpy(confidence))
+            frame.targets[seq] = Targets(torch.from_numpy(own_pages(ft.target)), torch.from_numpy(own_pages(confidence)))
         return frame.targets[seq]
 
     def align(self, graph: KeyframeGraph, seq: int) -> torch.Tensor:

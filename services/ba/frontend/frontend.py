@@ -25,13 +25,14 @@ from services.ba.core import se3
 from services.ba.core.host_arrays import as_numpy
 from services.ba.frontend import init, inputs, keyframe_pose, start, steps, upkeep
 from services.ba.frontend.frames import FramePoses, FrameRecord
-from services.ba.frontend.graph import KeyframeGraph, Targets, grid_intrinsics, working_intrinsics
+from services.ba.frontend.graph import KeyframeGraph, Targets, grid_intrinsics, own_pages_tensor, working_intrinsics
 from services.ba.frontend.inputs import FrameInput, KeyframeInput
 from services.ba.frontend.params import FrontendParams, focal_ba
 from services.ba.frontend.refinement import Refinement
 from services.ba.frontend.carried_depth import propagate_disparity
 from services.ba.frontend.tracker import Reference
 from services.ba.frontend.updates import Update, graph_update, pose_update
+from services.common.own_pages import own_pages
 
 logger = logging.getLogger(__name__)
 
@@ -108,7 +109,8 @@ class Frontend(Refinement):
             start.calibrate_focal(g, self.frames, self.params, self._live)
         self._add_proximity(k)
         window = self._window()
-        if g.run(window, g.pairs(window, self.params.graph.temporal_radius), self._ba_params(window)) is None:
+        if g.run(window, g.pairs(window, self.params.graph.temporal_radius), self._ba_params(window),
+                 codes_per_edge=self.params.window_ark_per_edge) is None:
             window = self._drop_unconstrained(window)
         updated = set(window)
         removed = self._remove_redundant()
@@ -142,7 +144,7 @@ class Frontend(Refinement):
         src = keyframe_pose.newest_refined(g, self._carried, k)
         src = k - 1 if src is None else src
         disparity, known = propagate_disparity(g.poses[src], g.poses[k], g.disparity[src], g.intrinsics)
-        g.disparity[k] = torch.from_numpy(disparity).to(g.disparity[k - 1])
+        g.disparity[k] = own_pages_tensor(torch.from_numpy(disparity).to(g.disparity[k - 1]))
         self._carried[g.seqs[k]] = known
         self._add_proximity(k)
         seqs = [self.graph.seqs[k]]
@@ -181,13 +183,13 @@ class Frontend(Refinement):
                          g.images[k], previous, None if known is None else known.copy(), speed)
 
     def add_frame(self, frame: FrameInput) -> Update:
-        image = core_flow.to_grey(np.asarray(frame.image))
+        image = own_pages(core_flow.to_grey(np.asarray(frame.image)))
         if self.graph is not None and frame.seq in self.graph.seqs:
             raise ValueError(f"frame {frame.seq} is already a keyframe")
         record = FrameRecord(frame.seq, frame.t_ns, image, interpolate_only=frame.interpolate_only)
         if frame.tracked_flow is not None:  # kept to solve the frame again (frames.py)
             record.tracked_ref, target, confidence = frame.tracked_flow
-            record.targets[record.tracked_ref] = Targets(target, confidence)
+            record.targets[record.tracked_ref] = Targets(own_pages_tensor(target), own_pages_tensor(confidence))
         if frame.tracked is not None and self.graph is not None and frame.tracked[0] in self.graph.seqs:
             # tracking already aligned it to a keyframe: anchored there, it moves with every BA of that keyframe
             # and needs no flow of its own (its pose went out when it was tracked)
@@ -282,7 +284,8 @@ class Frontend(Refinement):
         seq = upkeep.to_frame(self.graph, self.frames, k)
         logger.info("keyframe the BA cannot constrain turned into a frame", extra={"seq": seq})
         window = self._window()
-        self.graph.run(window, self.graph.pairs(window, self.params.graph.temporal_radius), self._ba_params(window))
+        self.graph.run(window, self.graph.pairs(window, self.params.graph.temporal_radius), self._ba_params(window),
+                       codes_per_edge=self.params.window_ark_per_edge)
         return window
 
     def _remove_redundant(self) -> list[int] | None:

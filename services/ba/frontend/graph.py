@@ -17,6 +17,7 @@ from services.ba.core.projective_numpy import induced_flow_field, translational_
 from services.ba.frontend.edges import temporal_pairs
 from services.common.camera import scale_intrinsics
 from services.common.image_texture import texture as image_texture
+from services.common.own_pages import own_pages
 
 logger = logging.getLogger(__name__)
 STILL_STEP = 0.01  # keyframe steps below this x the scene's median depth are never refused as jumps (_jumped)
@@ -30,6 +31,14 @@ def grid_intrinsics(work: np.ndarray) -> torch.Tensor:
 def working_intrinsics(grid: torch.Tensor) -> np.ndarray:
     """1/8-grid intrinsics ``(4,)`` -> working-resolution (fx, fy, cx, cy) float64."""
     return scale_intrinsics(grid.detach().cpu().numpy(), GRID, GRID)
+
+
+def own_pages_tensor(tensor: torch.Tensor) -> torch.Tensor:
+    """:func:`services.common.own_pages.own_pages` of a CPU tensor, for what the graph keeps across BAs (a tensor
+    on another device is returned as it is: its memory is not the process's heap)."""
+    if tensor.device.type != "cpu":
+        return tensor
+    return torch.from_numpy(own_pages(tensor.detach().numpy()))
 
 
 class NativeCodes(NamedTuple):
@@ -111,14 +120,15 @@ class KeyframeGraph:
         h, w = self.grid_hw
         self.seqs.append(seq)
         self.stamps.append(stamp)
-        self.images.append(grey)
-        self.codes.append(codes)
-        self.native_codes.append(native_codes)
-        self.priors.append(prior)
-        self.poses.append(pose)
-        self.disparity.append(disparity)
-        self.static.append(torch.ones(h, w))
-        self.confidence.append(torch.zeros(h, w))
+        self.images.append(own_pages(grey))
+        self.codes.append(None if codes is None else own_pages_tensor(codes))
+        self.native_codes.append(None if native_codes is None else native_codes._replace(
+            codes=own_pages(native_codes.codes)))
+        self.priors.append(None if prior is None else own_pages_tensor(prior))
+        self.poses.append(own_pages_tensor(pose))
+        self.disparity.append(own_pages_tensor(disparity))
+        self.static.append(own_pages_tensor(torch.ones(h, w)))
+        self.confidence.append(own_pages_tensor(torch.zeros(h, w)))
         return len(self.seqs) - 1
 
     def snapshot(self) -> tuple:
@@ -172,9 +182,11 @@ class KeyframeGraph:
             # both directions at once: the reverse edge is (almost) always asked for too (temporal edges come
             # in pairs), and its two flows are these
             there, back = core_flow.pair_targets(self._image(i, scale), self._image(j, scale), params, fwd, bwd)
-            self._cache[key] = Targets(torch.from_numpy(there.target), torch.from_numpy(there.confidence))
+            self._cache[key] = Targets(torch.from_numpy(own_pages(there.target)),
+                                       torch.from_numpy(own_pages(there.confidence)))
             self._cache.setdefault((self.seqs[j], self.seqs[i]),
-                                   Targets(torch.from_numpy(back.target), torch.from_numpy(back.confidence)))
+                                   Targets(torch.from_numpy(own_pages(back.target)),
+                                           torch.from_numpy(own_pages(back.confidence))))
         return self._cache[key]
 
     def take_flows(self, i: int, j: int) -> dict[tuple[int, int], Targets]:
@@ -256,14 +268,31 @@ class KeyframeGraph:
         linked = {b for a, b in self.proximity if a in inside} | {a for a, b in self.proximity if b in inside}
         return [k for k in self.landmark_positions() if self.seqs[k] in linked]
 
+    def _window_codes(self, window: list[int]) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        """The BA problem's codes of keyframes ``window`` (N, h, w, K) and which of them are real (N,) bool (None:
+        all); zeros stand in for a keyframe whose codes are still on their way. Its edges keep the fixed kernel
+        until they come: the newest keyframe's codes follow its geometry (semantics off the critical path), and a
+        background BA that waited for every keyframe's codes ran without ARK all stream long."""
+        have = [self.codes[k] is not None for k in window]
+        if not any(have):
+            return None, None
+        real = next(self.codes[k] for k, ok in zip(window, have) if ok)
+        # stacked channels first and handed over as an (N, h, w, K) view: ARK samples that layout without a copy
+        codes = torch.stack([(self.codes[k] if ok else torch.zeros_like(real)).permute(2, 0, 1)
+                             for k, ok in zip(window, have)])
+        return (codes.to(self.device).permute(0, 2, 3, 1),
+                None if all(have) else torch.tensor(have, device=self.device))
+
     def stacked(self, window: list[int]) -> BAState:
         return BAState(torch.stack([self.poses[k] for k in window]),
                        torch.stack([self.disparity[k] for k in window]), self.intrinsics.clone())
 
     def run(self, window: list[int], pairs: list[tuple[int, int]], params: BAParams,
-            should_stop: Callable[[], bool] | None = None) -> BAResult | None:
+            should_stop: Callable[[], bool] | None = None, codes_per_edge: bool = True) -> BAResult | None:
         """BA over the keyframes at positions ``window`` (the first is the gauge) with edges ``pairs``; None (and
-        the state unchanged) when the solve failed or its result is implausible. ``should_stop``: see ``run_ba``."""
+        the state unchanged) when the solve failed or its result is implausible. ``should_stop``: see ``run_ba``.
+        ``codes_per_edge``: edges between keyframes with codes use ARK though others' codes are not in yet;
+        False: codes only once every keyframe of the window has them (:meth:`_window_codes`)."""
         local = {k: n for n, k in enumerate(window)}
         dev = self.device
         ii = torch.tensor([local[a] for a, _ in pairs], dtype=torch.long, device=dev)
@@ -274,9 +303,9 @@ class KeyframeGraph:
         # solver works in that layout (ba._prepare), which it then takes without a copy of its own
         targets = torch.stack([t.target.permute(2, 0, 1) for t in tg]).to(dev).permute(0, 2, 3, 1)
         conf = torch.stack([t.confidence for t in tg]).to(dev)
-        codes = None
-        if all(self.codes[k] is not None for k in window):
-            codes = torch.stack([self.codes[k] for k in window]).to(dev)
+        codes, coded = self._window_codes(window)
+        if coded is not None and not codes_per_edge:
+            codes = coded = None
         prior = mask = None
         if params.alpha_disp > 0 and any(self.priors[k] is not None for k in window):
             zero = torch.zeros(self.grid_hw, dtype=torch.float64)
@@ -286,7 +315,7 @@ class KeyframeGraph:
         self.jumped_seq = None
         try:
             bounds = (self.focal_range[0] * self.first_focal, self.focal_range[1] * self.first_focal)
-            problem = BAProblem(ii, jj, targets, conf, codes, prior, mask, bounds, self.first_principal)
+            problem = BAProblem(ii, jj, targets, conf, codes, prior, mask, bounds, self.first_principal, coded)
             result = run_ba(start, problem, params, should_stop)
         except (RuntimeError, IndexError) as exc:  # a degenerate window (singular or non-finite): keep its state
             logger.warning("BA failed; window state kept", extra={"keyframes": len(window), "error": str(exc)})
@@ -339,8 +368,8 @@ class KeyframeGraph:
         conf_sum = torch.zeros(n, *conf.shape[1:], device=ii.device, dtype=conf.dtype).index_add_(0, ii, conf)
         mean_conf = conf_sum / counts.clamp_min(1)[:, None, None]
         for n_local, k in enumerate(window):
-            self.poses[k] = state.poses[n_local]
-            self.disparity[k] = state.disparity[n_local]
-            self.static[k] = result.static_weight[n_local].float().cpu()
-            self.confidence[k] = mean_conf[n_local].float().cpu()
+            self.poses[k] = own_pages_tensor(state.poses[n_local])
+            self.disparity[k] = own_pages_tensor(state.disparity[n_local])
+            self.static[k] = own_pages_tensor(result.static_weight[n_local].float().cpu())
+            self.confidence[k] = own_pages_tensor(mean_conf[n_local].float().cpu())
         self.intrinsics = state.intrinsics

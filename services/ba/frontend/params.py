@@ -131,6 +131,11 @@ class FrontendParams:
     # fixed kernel until the focal is frozen, the codes still giving the static weights (a stream's first codes
     # come late and in a young, refitted PCA basis: KITTI 07 through the pipeline, focal +0.94 % with ARK,
     # -0.28 % without; docs/BENCHMARKS.md)
+    window_ark_per_edge: bool = False  # a keyframe's window BA uses ARK on the edges whose codes are in even while
+    # the newest keyframe's are on their way (its codes follow its geometry); False: only once every keyframe of
+    # the window has codes. The window BA is mapping's critical path: per edge it cost lossless KITTI 07 15 % of
+    # ba's CPU (3.15 -> 2.65 fps) for the same ATE; background and end-of-stream BAs use codes per edge always
+    # (KeyframeGraph.run), so every keyframe is refined with ARK once its codes are in (docs/BENCHMARKS.md)
     focal_until: int = 30  # ... and frozen after this many keyframes: under long forward motion focal and depth
     # trade off, and the focal drifts (KITTI 07: 455 -> 371 working px over frames 60-100 when never frozen)
     max_step_growth: float = 4.0  # BA results whose longest keyframe step grows beyond this x the start's are refused
