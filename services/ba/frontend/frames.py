@@ -126,7 +126,8 @@ class FramePoses:
             ft = core_flow.flow_targets(keyframe, image, params)
             # as tracking's: forward-backward consistency alone trusts DIS's smooth flow over a blank view
             confidence = ft.confidence * core_flow.photometric_agreement(keyframe, image, ft.target, params.grid)
-            frame.targets[seq] = Targets(torch.from_numpy(own_pages(ft.target)), torch.from_numpy(own_pages(confidence)))
+            frame.targets[seq] = Targets(torch.from_numpy(own_pages(ft.target)),
+                                         torch.from_numpy(own_pages(confidence)))
         return frame.targets[seq]
 
     def align(self, graph: KeyframeGraph, seq: int) -> torch.Tensor:

@@ -101,7 +101,8 @@ class Refinement:
         began = time.monotonic()
         accepted = self._global_ba(bound, keyframes)
         logger.info("background BA", extra={"keyframes": len(keyframes), "edges": self._edge_count(keyframes),
-                                            "accepted": accepted, "without_codes": sum(g.codes[k] is None for k in keyframes),
+                                            "accepted": accepted,
+                                            "without_codes": sum(g.codes[k] is None for k in keyframes),
                                             "seconds": round(time.monotonic() - began, 2)})
         return self._update(keyframes) if accepted else Update()
 
