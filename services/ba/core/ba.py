@@ -114,6 +114,8 @@ def _prepare(problem: BAProblem, params: BAParams, h: int, w: int) -> _Prepared:
     if codes is not None and params.lambda_embed <= 0:  # ARK alone samples them: channels-first storage
         # (ark.sample), copied once here unless the caller's already is (KeyframeGraph.run)
         codes = codes.permute(0, 3, 1, 2).contiguous().permute(0, 2, 3, 1)
+    elif codes is not None:  # the embedding term's gathers want channels last: copied once, not per evaluation
+        codes = codes.contiguous()
     coded = None
     if codes is not None and problem.coded is not None and not bool(problem.coded.all()):
         coded = problem.coded[problem.ii] & problem.coded[problem.jj]
