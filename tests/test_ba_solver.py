@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from services.ba.core import ba, embedding, intrinsics, schur, se3, synthetic
+from services.ba.core import ba, embedding, intrinsics, irls, schur, se3, synthetic
 from services.ba.core.params import BAParams, RobustParams
 
 L2 = RobustParams(use_ark=False, fixed_alpha=2.0)
@@ -154,7 +154,7 @@ def _rows(state, problem, params):
     h, w = state.disparity.shape[1:]
     prep = ba._prepare(problem, params, h, w)
     res = ba._edge_residuals(state, prep, params, with_jac=True)
-    eq = ba._normal_equations(res, params, ba._frozen(res, params, ba._ark(res, prep, params, None)))
+    eq = ba._normal_equations(res, params, irls.frozen(res.flow_norm, res.flow_w, res.embed, params, ba._ark(res, prep, params, None)))
     return res, prep, eq.j_cam.permute(0, 3, 2, 1), eq.j_disp.transpose(1, 2), eq.residual.transpose(1, 2), \
         eq.weight.transpose(1, 2), eq
 

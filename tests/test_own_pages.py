@@ -3,17 +3,15 @@ the heap alone, so that bursts of short-lived buffers between them (a BA's slice
 from __future__ import annotations
 
 import ctypes
-import dataclasses
 import json
 import subprocess
 import sys
 import textwrap
-from typing import NamedTuple
 
 import numpy as np
 import pytest
 
-from services.common.own_pages import fields_on_own_pages, own_pages
+from services.common.own_pages import own_pages
 
 glibc = pytest.mark.skipif(not sys.platform.startswith("linux") or not hasattr(ctypes.CDLL(None), "mallopt"),
                            reason="glibc's allocator")
@@ -32,29 +30,6 @@ def test_a_copy_with_the_same_values_that_shares_nothing(array):
     np.testing.assert_array_equal(kept, array)
     assert not np.shares_memory(kept, array)
     assert kept.flags.writeable and kept.flags.c_contiguous
-
-
-class _Pair(NamedTuple):
-    values: np.ndarray
-    note: str
-    missing: np.ndarray | None = None
-
-
-@dataclasses.dataclass(frozen=True)
-class _Frozen:
-    values: np.ndarray
-    count: int
-
-
-def test_a_record_s_arrays_move_and_the_rest_stays():
-    values = np.arange(6.0)
-    pair = fields_on_own_pages(_Pair(values, "x"))
-    assert isinstance(pair, _Pair) and pair.note == "x" and pair.missing is None
-    np.testing.assert_array_equal(pair.values, values)
-    assert not np.shares_memory(pair.values, values)
-    frozen = fields_on_own_pages(_Frozen(values, 3))
-    assert isinstance(frozen, _Frozen) and frozen.count == 3
-    assert not np.shares_memory(frozen.values, values)
 
 
 # 2,000 arrays of 24 KiB (cached flow targets): on pages of their own the heap does not hold them, and their pages

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import torch
 
-from services.ba.core import ba, intrinsics, schur, synthetic
+from services.ba.core import ba, intrinsics, irls, schur, synthetic
 from services.ba.core.params import BAParams, RobustParams
 
 PARAMS = BAParams(optimise_focal=True, compute_dtype="float64", robust=RobustParams(use_ark=False, fixed_alpha=2.0))
@@ -22,7 +22,7 @@ def _badly_conditioned():
     h, w = state.disparity.shape[1:]
     prep = ba._prepare(win.problem, PARAMS, h, w)
     res = ba._edge_residuals(state, prep, PARAMS, with_jac=True)
-    eq = ba._normal_equations(res, PARAMS, ba._frozen(res, PARAMS, None))
+    eq = ba._normal_equations(res, PARAMS, irls.frozen(res.flow_norm, res.flow_w, res.embed, PARAMS, None))
     return win.problem, state, eq
 
 

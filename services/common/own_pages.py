@@ -11,13 +11,9 @@ not for every temporary. ba holds ~7,000 such mappings on the 10,000-frame strea
 limit of 65,530 (``vm.max_map_count``)."""
 from __future__ import annotations
 
-import dataclasses
 import mmap
-from typing import TypeVar
 
 import numpy as np
-
-R = TypeVar("R")
 
 
 def own_pages(array: np.ndarray) -> np.ndarray:
@@ -30,15 +26,3 @@ def own_pages(array: np.ndarray) -> np.ndarray:
     kept[...] = array
     return kept
 
-
-
-def fields_on_own_pages(record: R) -> R:
-    """``record`` (a dataclass or a named tuple) with each array field as :func:`own_pages` of it."""
-    if dataclasses.is_dataclass(record):
-        names = [f.name for f in dataclasses.fields(record)]
-        return dataclasses.replace(record, **_arrays_moved(record, names))
-    return record._replace(**_arrays_moved(record, record._fields))
-
-
-def _arrays_moved(record, names) -> dict:
-    return {n: own_pages(v) for n in names if isinstance(v := getattr(record, n), np.ndarray) and v.size}

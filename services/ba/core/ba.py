@@ -31,13 +31,12 @@ from typing import Callable, Iterator, NamedTuple
 import torch
 
 from services.ba.core import ark as ark_codes
-from services.ba.core import embedding, intrinsics, projective, robust, schur, se3
+from services.ba.core import embedding, intrinsics, irls, projective, robust, schur, se3
 from services.ba.core.params import BAParams
 from services.ba.core.slice_fields import join_slice
 from services.ba.core.static_weight import static_weight
 
 logger = logging.getLogger(__name__)
-KERNEL_MASKS = ("l2", "cauchy", "welsch")  # robust.Kernel's fields that are None where nowhere
 
 
 class BAProblem(NamedTuple):
@@ -168,63 +167,11 @@ def _edge_residuals(state: BAState, prep: _Prepared, params: BAParams, with_jac:
     return _Residuals(flow, torch.hypot(flow[:, 0], flow[:, 1]), flow_w, embed, rp)
 
 
-class _Frozen(NamedTuple):
-    """IRLS quantities frozen within one iteration."""
-
-    alpha: torch.Tensor  # (E, P) robust shape
-    kernel: robust.Kernel  # the Barron constants of alpha
-    embed_weight: torch.Tensor  # (E, P) weight of the embedding residual (0 where unused)
-
-
 def _ark(res: _Residuals, prep: _Prepared, params: BAParams,
          cache: ark_codes.ArkCosine | None) -> ark_codes.ArkCosine | None:
-    """Code cosine at the current reprojections (None without ARK or codes): from the embedding residual when
-    that term is on (it is evaluated anyway), else from the lazily refreshed cache. An edge without codes at both
-    ends has no valid cosine (its pixels are no evidence for ``static_weight``)."""
-    if not params.robust.use_ark or prep.codes is None:
-        return None
-    coords = res.reproj.coords
-    if res.embed is not None:
-        ark = ark_codes.ArkCosine(res.embed.cosine, res.embed.valid, coords)
-    else:
-        ark = ark_codes.refresh(cache, prep.codes, prep.ii, prep.jj, coords, res.reproj.valid,
-                                params.robust.ark_refresh_px)
-    return ark if prep.coded is None else ark._replace(valid=ark.valid & prep.coded[:, None])
-
-
-def _frozen(res: _Residuals, params: BAParams, ark: ark_codes.ArkCosine | None,
-            coded: torch.Tensor | None = None) -> _Frozen:
-    """The IRLS quantities of evaluated residuals; ``coded`` (E,) bool: the edges with codes at both ends (None:
-    all), the others keep the fixed kernel and have no embedding term."""
-    rob = params.robust
-    if ark is not None and rob.ark_in_solve:
-        alpha = robust.ark_shape(ark.cosine, rob)  # today's centred map or the paper's (RobustParams.ark_mode)
-        if coded is not None:
-            alpha = torch.where(coded[:, None], alpha, alpha.new_tensor(rob.fixed_alpha))
-        kern = robust.kernel(alpha, alpha.dtype, alpha.device)
-    else:  # one shape everywhere: its constants formed once and broadcast (views), not ~6 (E, P) tensors
-        alpha, kern = _uniform(res.flow_w, rob.fixed_alpha)
-    if res.embed is None or params.lambda_embed <= 0:
-        return _Frozen(alpha, kern, res.flow_w.new_zeros((1,) * res.flow_w.dim()).expand_as(res.flow_w))
-    # The embedding term is trusted only where the pixel looks static: its flow IRLS weight times the ARK
-    # probability of "same content" (the sigmoid of cs); otherwise a moving or occluded pixel's codes would
-    # pull the geometry just as its flow does.
-    static = rob.scale**2 * robust.weight(res.flow_norm, kern, rob.scale)
-    same = torch.sigmoid((res.embed.cosine - rob.kappa) / rob.tau)
-    weight = params.lambda_embed * res.flow_w * res.embed.valid * static * same
-    return _Frozen(alpha, kern, weight if coded is None else weight * coded[:, None])
-
-
-def _uniform(like: torch.Tensor, alpha: float) -> tuple[torch.Tensor, robust.Kernel]:
-    """``alpha`` and its kernel as broadcast views of ``like``'s shape (no per-pixel memory)."""
-    one = torch.full((1,) * like.dim(), alpha, dtype=like.dtype, device=like.device)
-    kern = robust.kernel(one, one.dtype, one.device)
-    return one.expand_as(like), robust.Kernel(*(None if t is None else t.expand_as(like) for t in kern))
-
-
-def _sliced_frozen(frozen: _Frozen, edges: slice) -> _Frozen:
-    kern = robust.Kernel(*(None if t is None else t[edges] for t in frozen.kernel))
-    return _Frozen(frozen.alpha[edges], kern, frozen.embed_weight[edges])
+    """ARK's code cosine at ``res``'s reprojections (``irls.code_cosine``)."""
+    return irls.code_cosine(prep.codes, prep.ii, prep.jj, prep.coded, res.reproj.coords, res.reproj.valid,
+                            res.embed, params, cache)
 
 
 class _Evaluated(NamedTuple):
@@ -232,7 +179,7 @@ class _Evaluated(NamedTuple):
 
     res: _Residuals  # in a problem linearised in slices only flow_norm and flow_w (the end's weights need them)
     ark: ark_codes.ArkCosine | None
-    frozen: _Frozen
+    frozen: irls.Frozen
     energy: float  # the flow and embedding energy (the priors' is not in it)
 
 
@@ -248,7 +195,7 @@ def _evaluate(state: BAState, prep: _Prepared, params: BAParams, with_jac: bool,
     if with_jac or not _sliced(len(prep.ii), params):
         res = _edge_residuals(state, prep, params, with_jac)
         ark = _ark(res, prep, params, cache)
-        frozen = _frozen(res, params, ark, prep.coded)
+        frozen = irls.frozen(res.flow_norm, res.flow_w, res.embed, params, ark, prep.coded)
         return _Evaluated(res, ark, frozen, _energy(res, params, frozen))
     n_edges, energy = len(prep.ii), 0.0
     whole = None if previous is None else list(_fields(previous.res, previous.ark, previous.frozen))
@@ -257,21 +204,21 @@ def _evaluate(state: BAState, prep: _Prepared, params: BAParams, with_jac: bool,
         res = _edge_residuals(state, part_prep, params, False)
         ark = _ark(res, part_prep, params,
                    None if cache is None else ark_codes.ArkCosine(*(t[edges] for t in cache)))
-        frozen = _frozen(res, params, ark, part_prep.coded)
+        frozen = irls.frozen(res.flow_norm, res.flow_w, res.embed, params, ark, part_prep.coded)
         energy += _energy(res, params, frozen)
         parts = _fields(res, ark, frozen)
         whole = [join_slice(None if whole is None else w, p, edges, n_edges) for w, p in zip(whole or parts, parts)]
         del res, ark, frozen, parts  # freed before the next slice's are formed
     flow_norm, flow_w, cosine, inside, coords, alpha, *kernel, embed_weight = whole
     kernel = robust.Kernel(*kernel)
-    kernel = kernel._replace(**{name: None for name in KERNEL_MASKS  # a mask that is False everywhere: None
+    kernel = kernel._replace(**{name: None for name in irls.KERNEL_MASKS  # a mask that is False everywhere: None
                                 if getattr(kernel, name) is not None and not bool(getattr(kernel, name).any())})
     ark = None if cosine is None else ark_codes.ArkCosine(cosine, inside, coords)
-    return _Evaluated(_Residuals(None, flow_norm, flow_w, None, None), ark, _Frozen(alpha, kernel, embed_weight),
-                      energy)
+    return _Evaluated(_Residuals(None, flow_norm, flow_w, None, None), ark,
+                      irls.Frozen(alpha, kernel, embed_weight), energy)
 
 
-def _fields(res: _Residuals, ark: ark_codes.ArkCosine | None, frozen: _Frozen) -> tuple:
+def _fields(res: _Residuals, ark: ark_codes.ArkCosine | None, frozen: irls.Frozen) -> tuple:
     """The per-edge fields an evaluation in slices keeps, in the order ``_evaluate`` unpacks them."""
     return (res.flow_norm, res.flow_w, *((None,) * 3 if ark is None else ark), frozen.alpha, *frozen.kernel,
             frozen.embed_weight)
@@ -288,7 +235,7 @@ def _prior_terms(state: BAState, problem: BAProblem, params: BAParams):
     return h, -h * diff, float(0.5 * (h * diff**2).sum())
 
 
-def _energy(res: _Residuals, params: BAParams, frozen: _Frozen) -> float:
+def _energy(res: _Residuals, params: BAParams, frozen: irls.Frozen) -> float:
     """Flow and embedding energy of evaluated residuals (summed in float64: LM compares close values)."""
     c = params.robust.scale
     flow = res.flow_w * robust.rho(res.flow_norm, frozen.kernel, c)
@@ -298,12 +245,12 @@ def _energy(res: _Residuals, params: BAParams, frozen: _Frozen) -> float:
     return float(total)
 
 
-def _cost(state: BAState, prep: _Prepared, problem: BAProblem, params: BAParams, frozen: _Frozen,
+def _cost(state: BAState, prep: _Prepared, problem: BAProblem, params: BAParams, frozen: irls.Frozen,
           guess: torch.Tensor) -> float:
     """The energy at a trial ``state``; in a problem linearised in slices, summed a slice at a time (a trial's
     residuals are only ever summed)."""
     energy = sum(_energy(_edge_residuals(state, _edges(prep, edges), params, False), params,
-                         _sliced_frozen(frozen, edges)) for edges in _edge_slices(len(prep.ii), params))
+                         irls.sliced(frozen, edges)) for edges in _edge_slices(len(prep.ii), params))
     return energy + _prior_energy(state, problem, params, guess)
 
 
@@ -312,12 +259,12 @@ def _prior_energy(state: BAState, problem: BAProblem, params: BAParams, guess: t
     return _prior_terms(state, problem, params)[2] + intrinsics.principal_energy(state.intrinsics, guess, params)
 
 
-def _normal_equations(res: _Residuals, params: BAParams, frozen: _Frozen) -> schur.NormalEquations:
+def _normal_equations(res: _Residuals, params: BAParams, frozen: irls.Frozen) -> schur.NormalEquations:
     """Residuals ``reprojection - target`` (the flow residual's sign flipped, so its Jacobian is the
     reprojection's own and needs no copy) and, with the embedding term, ``r_embed`` as a third component."""
     rp, c = res.reproj, params.robust.scale
-    irls = c**2 * robust.weight(res.flow_norm, frozen.kernel, c)
-    w_flow = (params.lambda_photo * res.flow_w * irls)[:, None].expand(-1, 2, -1)
+    irls_w = c**2 * robust.weight(res.flow_norm, frozen.kernel, c)
+    w_flow = (params.lambda_photo * res.flow_w * irls_w)[:, None].expand(-1, 2, -1)
     j_cam, j_disp, resid, weight = rp.jac, rp.j_disp, -res.flow, w_flow
     if res.embed is not None and params.lambda_embed > 0:
         g = res.embed.d_coords.transpose(1, 2)  # (E, 2, P), chain rule through the reprojection
@@ -328,7 +275,7 @@ def _normal_equations(res: _Residuals, params: BAParams, frozen: _Frozen) -> sch
     return schur.NormalEquations(j_cam, j_disp, resid, weight)
 
 
-def _linearised(state: BAState, prep: _Prepared, params: BAParams, frozen: _Frozen,
+def _linearised(state: BAState, prep: _Prepared, params: BAParams, frozen: irls.Frozen,
                 res: _Residuals) -> Iterator[tuple[slice, schur.NormalEquations]]:
     """The normal equations at ``state``: of ``res`` when it holds Jacobians (a problem of one slice), else
     slice by slice, each slice's residuals evaluated again with Jacobians (see ``BAParams.linearise_edges``)."""
@@ -337,7 +284,7 @@ def _linearised(state: BAState, prep: _Prepared, params: BAParams, frozen: _Froz
         return
     for edges in _edge_slices(len(prep.ii), params):
         part = _edge_residuals(state, _edges(prep, edges), params, with_jac=True)
-        equations = _normal_equations(part, params, _sliced_frozen(frozen, edges))
+        equations = _normal_equations(part, params, irls.sliced(frozen, edges))
         del part  # the residuals' other per-pixel fields are not needed by the solve
         yield edges, equations
         del equations  # the caller has summed this slice: freed before the next one is formed
@@ -421,7 +368,7 @@ def run_ba(state: BAState, problem: BAProblem, params: BAParams,
     return BAResult(state, costs, edge_w.view(-1, h, w), static, ev.frozen.alpha.reshape(-1, h, w).contiguous())
 
 
-def _edge_weight(res: _Residuals, frozen: _Frozen, params: BAParams) -> torch.Tensor:
+def _edge_weight(res: _Residuals, frozen: irls.Frozen, params: BAParams) -> torch.Tensor:
     """(E, P) robust IRLS weight c^2 psi(r)/r in [0, 1] of the kernel in use; 0 where the edge is unused."""
     c = params.robust.scale
     return c**2 * robust.weight(res.flow_norm, frozen.kernel, c) * (res.flow_w > 0).to(res.flow_w.dtype)

@@ -16,7 +16,7 @@ def join_slice(whole: torch.Tensor | None, part: torch.Tensor | None, edges: sli
             whole[edges] = False
         return whole
     if 0 in part.stride() and all(st == 0 or n == 1 for st, n in zip(part.stride(), part.shape)):
-        return part[:1].expand(n_edges, *part.shape[1:])  # an expanded single value (ba._uniform's)
+        return part[:1].expand(n_edges, *part.shape[1:])  # an expanded single value (irls.uniform's)
     shape = (n_edges, *part.shape[1:])
     if whole is None or whole.shape != shape or whole.dtype != part.dtype or 0 in whole.stride():
         # a mask that first appears in a later slice is False in the slices before it

@@ -268,13 +268,14 @@ class KeyframeGraph:
         linked = {b for a, b in self.proximity if a in inside} | {a for a, b in self.proximity if b in inside}
         return [k for k in self.landmark_positions() if self.seqs[k] in linked]
 
-    def _window_codes(self, window: list[int]) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    def _window_codes(self, window: list[int], per_edge: bool) -> tuple[torch.Tensor | None, torch.Tensor | None]:
         """The BA problem's codes of keyframes ``window`` (N, h, w, K) and which of them are real (N,) bool (None:
         all); zeros stand in for a keyframe whose codes are still on their way. Its edges keep the fixed kernel
         until they come: the newest keyframe's codes follow its geometry (semantics off the critical path), and a
-        background BA that waited for every keyframe's codes ran without ARK all stream long."""
+        background BA that waited for every keyframe's codes ran without ARK all stream long. Not ``per_edge``:
+        no codes unless every keyframe has them."""
         have = [self.codes[k] is not None for k in window]
-        if not any(have):
+        if not any(have) or not (per_edge or all(have)):
             return None, None
         real = next(self.codes[k] for k, ok in zip(window, have) if ok)
         # stacked channels first and handed over as an (N, h, w, K) view: ARK samples that layout without a copy
@@ -303,9 +304,7 @@ class KeyframeGraph:
         # solver works in that layout (ba._prepare), which it then takes without a copy of its own
         targets = torch.stack([t.target.permute(2, 0, 1) for t in tg]).to(dev).permute(0, 2, 3, 1)
         conf = torch.stack([t.confidence for t in tg]).to(dev)
-        codes, coded = self._window_codes(window)
-        if coded is not None and not codes_per_edge:
-            codes = coded = None
+        codes, coded = self._window_codes(window, codes_per_edge)
         prior = mask = None
         if params.alpha_disp > 0 and any(self.priors[k] is not None for k in window):
             zero = torch.zeros(self.grid_hw, dtype=torch.float64)
