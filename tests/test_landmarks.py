@@ -81,6 +81,6 @@ def test_the_second_lap_ties_to_landmarks_of_the_first(orbit):
     with_landmarks = _ate(world, posed)
     _, posed_without, _, _ = _run(frames, landmarks=0)
     without = _ate(world, posed_without)
-    # the second lap tied to the first lap's places, not to the drift since (here 0.16 m against 0.53 with half-size
+    # the second lap tied to the first lap's places, not to the drift since (here 0.14 m against 0.48 with half-size
     # edge flows, the default; 0.10 against 0.34 with every edge flow at the working size)
     assert with_landmarks < 0.2 and with_landmarks < 0.6 * without, (with_landmarks, without)

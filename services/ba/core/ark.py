@@ -57,7 +57,8 @@ def sample(codes: torch.Tensor, ii: torch.Tensor, jj: torch.Tensor, coords: torc
         at = torch.nan_to_num(coords[part], nan=-1.0, posinf=-1.0, neginf=-1.0)
         x, y = at[:, 0], at[:, 1]
         valid[part] = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
-        grid = (at * scale - 1).transpose(1, 2)[:, None].to(maps.dtype)  # (e, 1, P, 2) in [-1, 1]
+        # (e, 1, P, 2) in [-1, 1], made contiguous: grid_sample reads a strided grid ~25 % slower
+        grid = (at * scale - 1).transpose(1, 2)[:, None].to(maps.dtype).contiguous()
         values = torch.nn.functional.grid_sample(maps.index_select(0, jj[part]), grid, mode="bilinear",
                                                  padding_mode="border", align_corners=True)[:, :, 0]
         source = flat.index_select(0, ii[part])

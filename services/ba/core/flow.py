@@ -47,8 +47,12 @@ def dis_flow(image_a: np.ndarray, image_b: np.ndarray, params: FlowParams,
 
 
 def _block_mean(x: np.ndarray, grid: int) -> np.ndarray:
+    """float32 means of ``grid`` x ``grid`` blocks, summed in float64. OpenCV's area resize at an integer factor is
+    exactly that mean, ~15x faster than numpy's over a reshaped view; summed in float32, its rounding alone moved a
+    two-lap orbit's ATE from 0.16 to 0.21 m (tests/test_landmarks.py)."""
     h, w = x.shape[0] // grid, x.shape[1] // grid
-    return x[: h * grid, : w * grid].reshape(h, grid, w, grid, *x.shape[2:]).mean(axis=(1, 3))
+    block = np.ascontiguousarray(x[: h * grid, : w * grid], dtype=np.float64)
+    return cv2.resize(block, (w, h), interpolation=cv2.INTER_AREA).astype(np.float32)
 
 
 def flow_targets(image_i: np.ndarray, image_j: np.ndarray, params: FlowParams,
@@ -83,14 +87,15 @@ def _flows(image_i, image_j, params: FlowParams, init_flow, init_backward) -> tu
 def _targets(fwd: np.ndarray, bwd: np.ndarray, params: FlowParams) -> FlowTargets:
     height, width = fwd.shape[:2]
     xs, ys = np.meshgrid(np.arange(width, dtype=np.float32), np.arange(height, dtype=np.float32))
-    land_x, land_y = xs + fwd[..., 0], ys + fwd[..., 1]
-    bwd_at = cv2.remap(bwd, land_x, land_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    fb_err2 = ((fwd + bwd_at) ** 2).sum(-1)
+    land = fwd + np.stack([xs, ys], -1)
+    bwd_at = cv2.remap(bwd, land, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    fb = fwd + bwd_at
+    fb_err2 = np.einsum("ijk,ijk->ij", fb, fb)
+    land_x, land_y = land[..., 0], land[..., 1]
     inside = (land_x >= -0.5) & (land_x <= width - 0.5) & (land_y >= -0.5) & (land_y <= height - 0.5)
-    conf = np.exp(-0.5 * fb_err2 / params.fb_sigma**2) * inside
-    land = np.stack([land_x, land_y], -1)
+    conf = (np.exp(-0.5 * fb_err2 / params.fb_sigma**2) * inside).astype(np.float32)
     target = (_block_mean(land, params.grid) + 0.5) / params.grid - 0.5
-    return FlowTargets(target.astype(np.float32), _block_mean(conf, params.grid).astype(np.float32), fwd)
+    return FlowTargets(target.astype(np.float32), _block_mean(conf, params.grid), fwd)
 
 
 def edge_targets(images: list[np.ndarray], edges: list[tuple[int, int]],

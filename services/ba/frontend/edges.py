@@ -26,8 +26,14 @@ def induced_flow(poses: torch.Tensor, disparity: torch.Tensor, intrinsics: torch
     rp = projective.reproject(poses[ii], poses[jj], disparity.reshape(n, -1)[ii].to(poses.dtype), pixels,
                               intrinsics, with_jacobians=False)
     valid = rp.valid.to(poses.dtype)
-    dist = ((rp.coords - pixels).norm(dim=-1) * valid).sum(-1) / valid.sum(-1).clamp_min(1)
+    dist = (_length(rp.coords - pixels) * valid).sum(-1) / valid.sum(-1).clamp_min(1)
     return torch.where(valid.sum(-1) > 0, dist, torch.full_like(dist, float("inf")))
+
+
+def _length(flow: torch.Tensor) -> torch.Tensor:
+    """``(..., 2)`` vectors' lengths. ``reproject`` lays its coordinates out as x and y planes, and ``norm`` over
+    that strided last dimension took 33 ms for 63 edges of a KITTI grid, where ``hypot`` of the planes takes 0.2 ms."""
+    return torch.hypot(flow[..., 0], flow[..., 1])
 
 
 class FlowParts(NamedTuple):
@@ -53,7 +59,7 @@ def flow_parts(poses: torch.Tensor, disparity: torch.Tensor, intrinsics: torch.T
     inside = valid * ((x >= -0.5) & (x <= w - 0.5) & (y >= -0.5) & (y <= h - 0.5)).to(poses.dtype)
 
     def mean(flow: torch.Tensor) -> torch.Tensor:
-        return torch.nan_to_num(flow.norm(dim=-1) * valid).sum(-1) / valid.sum(-1).clamp_min(1)
+        return torch.nan_to_num(_length(flow) * valid).sum(-1) / valid.sum(-1).clamp_min(1)
 
     return FlowParts(mean(at.coords - pixels), mean(at.coords - far.coords), mean(far.coords - pixels),
                      inside.sum(-1) / (h * w))
