@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from services.ba.core import ba, embedding, intrinsics, irls, schur, se3, synthetic
+from services.ba.core import robust as robust_core
 from services.ba.core.params import BAParams, RobustParams
 
 L2 = RobustParams(use_ark=False, fixed_alpha=2.0)
@@ -404,6 +405,22 @@ def test_a_problem_linearised_in_edge_slices_takes_the_same_steps(embed, robust)
     assert torch.allclose(sliced.static_weight, whole.static_weight, atol=1e-9)
     if robust is SHARP_ARK:  # both masks were in play
         assert bool((whole.alpha == 2).any()) and bool((whole.alpha == 0).any())
+
+
+def test_a_sliced_bas_shapes_keep_no_kernel_constants_of_every_edge():
+    """A BA in slices keeps ARK's shapes of every edge and forms their kernel constants a slice at a time (four
+    float and three bool fields of every edge were ~50 MB of an 840-edge background BA); a fixed shape keeps its
+    broadcast constants."""
+    alpha = torch.tensor([[2.0, 0.0, -1.0, 1.0], [-float("inf"), 0.5, -2.0, 2.0], [-1.0, -1.0, 1.5, 0.0]])
+    lazy = irls.lazy(alpha, torch.zeros_like(alpha))
+    assert lazy.kernel is None
+    for edges in (slice(0, 1), slice(1, 3)):
+        got, want = irls.sliced(lazy, edges).kernel, robust_core.kernel(alpha[edges], alpha.dtype)
+        for g, w in zip(got, want):
+            assert (g is None and w is None) or torch.equal(g, w)
+    fixed = irls.lazy(torch.full((1, 1), -1.0).expand(3, 4), torch.zeros(3, 4))
+    assert fixed.kernel is not None and all(t is None or 0 in t.stride() for t in fixed.kernel)
+    assert torch.equal(irls.sliced(fixed, slice(1, 3)).kernel.coef, robust_core.kernel(-1.0).coef.float().expand(2, 4))
 
 
 def test_targets_stacked_channels_first_reach_the_solver_without_a_copy():

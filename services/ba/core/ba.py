@@ -20,8 +20,9 @@ the oldest camera so that the distance between camera 0 and the first free camer
 Every pixel of every edge is processed in one batched tensor expression: no Python loop over pixels, and over
 edges only in slices of ``BAParams.linearise_edges`` (a global BA's Jacobians would not fit in memory at once; its
 residuals and trial energies are evaluated slice by slice too, and a fixed kernel's constants are one broadcast
-value, so what exists for every edge at once is what IRLS freezes for an iteration — ARK's cosine cache, its
-shapes' kernel constants — and the residual norms and weights the end's edge weights need).
+value, so what exists for every edge at once is what IRLS freezes for an iteration — ARK's cosine cache and its
+shapes, whose kernel constants are formed a slice at a time — and the residual norms and weights the end's edge
+weights need).
 """
 from __future__ import annotations
 
@@ -209,19 +210,15 @@ def _evaluate(state: BAState, prep: _Prepared, params: BAParams, with_jac: bool,
         parts = _fields(res, ark, frozen)
         whole = [join_slice(None if whole is None else w, p, edges, n_edges) for w, p in zip(whole or parts, parts)]
         del res, ark, frozen, parts  # freed before the next slice's are formed
-    flow_norm, flow_w, cosine, inside, coords, alpha, *kernel, embed_weight = whole
-    kernel = robust.Kernel(*kernel)
-    kernel = kernel._replace(**{name: None for name in irls.KERNEL_MASKS  # a mask that is False everywhere: None
-                                if getattr(kernel, name) is not None and not bool(getattr(kernel, name).any())})
+    flow_norm, flow_w, cosine, inside, coords, alpha, embed_weight = whole
     ark = None if cosine is None else ark_codes.ArkCosine(cosine, inside, coords)
-    return _Evaluated(_Residuals(None, flow_norm, flow_w, None, None), ark,
-                      irls.Frozen(alpha, kernel, embed_weight), energy)
+    return _Evaluated(_Residuals(None, flow_norm, flow_w, None, None), ark, irls.lazy(alpha, embed_weight), energy)
 
 
 def _fields(res: _Residuals, ark: ark_codes.ArkCosine | None, frozen: irls.Frozen) -> tuple:
-    """The per-edge fields an evaluation in slices keeps, in the order ``_evaluate`` unpacks them."""
-    return (res.flow_norm, res.flow_w, *((None,) * 3 if ark is None else ark), frozen.alpha, *frozen.kernel,
-            frozen.embed_weight)
+    """The per-edge fields an evaluation in slices keeps, in the order ``_evaluate`` unpacks them (no kernel
+    constants: ``irls.lazy``)."""
+    return (res.flow_norm, res.flow_w, *((None,) * 3 if ark is None else ark), frozen.alpha, frozen.embed_weight)
 
 
 def _prior_terms(state: BAState, problem: BAProblem, params: BAParams):
@@ -371,4 +368,8 @@ def run_ba(state: BAState, problem: BAProblem, params: BAParams,
 def _edge_weight(res: _Residuals, frozen: irls.Frozen, params: BAParams) -> torch.Tensor:
     """(E, P) robust IRLS weight c^2 psi(r)/r in [0, 1] of the kernel in use; 0 where the edge is unused."""
     c = params.robust.scale
-    return c**2 * robust.weight(res.flow_norm, frozen.kernel, c) * (res.flow_w > 0).to(res.flow_w.dtype)
+    out = torch.empty_like(res.flow_norm)
+    for edges in _edge_slices(len(out), params):  # the kernel constants of a slice at a time (irls.lazy)
+        kern = irls.sliced(frozen, edges).kernel
+        out[edges] = c**2 * robust.weight(res.flow_norm[edges], kern, c) * (res.flow_w[edges] > 0)
+    return out

@@ -12,14 +12,11 @@ from services.ba.core import ark as ark_codes
 from services.ba.core import embedding, robust
 from services.ba.core.params import BAParams
 
-KERNEL_MASKS = ("l2", "cauchy", "welsch")  # robust.Kernel's fields that are None where nowhere
-
-
 class Frozen(NamedTuple):
     """IRLS quantities frozen within one iteration."""
 
     alpha: torch.Tensor  # (E, P) robust shape
-    kernel: robust.Kernel  # the Barron constants of alpha
+    kernel: robust.Kernel | None  # the Barron constants of alpha; None: formed from it a slice at a time (`sliced`)
     embed_weight: torch.Tensor  # (E, P) weight of the embedding residual (0 where unused)
 
 
@@ -70,7 +67,20 @@ def uniform(like: torch.Tensor, alpha: float) -> tuple[torch.Tensor, robust.Kern
     return one.expand_as(like), robust.Kernel(*(None if t is None else t.expand_as(like) for t in kern))
 
 
+def lazy(alpha: torch.Tensor, embed_weight: torch.Tensor) -> Frozen:
+    """The quantities of a BA linearised in slices, which keeps per-pixel shapes ``alpha`` (E, P) and forms their
+    kernel constants a slice at a time where they are used: four float and three bool fields of every edge were
+    ~50 MB of an 840-edge background BA's peak. A fixed shape keeps its broadcast constants (no memory)."""
+    if 0 in alpha.stride() and all(st == 0 or n == 1 for st, n in zip(alpha.stride(), alpha.shape)):
+        return Frozen(*uniform(alpha, float(alpha.reshape(-1)[0])), embed_weight)
+    return Frozen(alpha, None, embed_weight)
+
+
 def sliced(quantities: Frozen, edges: slice) -> Frozen:
-    """The quantities of the edges in ``edges``."""
-    kern = robust.Kernel(*(None if t is None else t[edges] for t in quantities.kernel))
-    return Frozen(quantities.alpha[edges], kern, quantities.embed_weight[edges])
+    """The quantities of the edges in ``edges``, with their kernel constants."""
+    alpha = quantities.alpha[edges]
+    if quantities.kernel is None:
+        kern = robust.kernel(alpha, alpha.dtype, alpha.device)
+    else:
+        kern = robust.Kernel(*(None if t is None else t[edges] for t in quantities.kernel))
+    return Frozen(alpha, kern, quantities.embed_weight[edges])
