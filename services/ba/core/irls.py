@@ -11,6 +11,7 @@ import torch
 from services.ba.core import ark as ark_codes
 from services.ba.core import embedding, robust
 from services.ba.core.params import BAParams
+from services.ba.core.slice_fields import one_value
 
 class Frozen(NamedTuple):
     """IRLS quantities frozen within one iteration."""
@@ -71,7 +72,7 @@ def lazy(alpha: torch.Tensor, embed_weight: torch.Tensor) -> Frozen:
     """The quantities of a BA linearised in slices, which keeps per-pixel shapes ``alpha`` (E, P) and forms their
     kernel constants a slice at a time where they are used: four float and three bool fields of every edge were
     ~50 MB of an 840-edge background BA's peak. A fixed shape keeps its broadcast constants (no memory)."""
-    if 0 in alpha.stride() and all(st == 0 or n == 1 for st, n in zip(alpha.stride(), alpha.shape)):
+    if one_value(alpha):
         return Frozen(*uniform(alpha, float(alpha.reshape(-1)[0])), embed_weight)
     return Frozen(alpha, None, embed_weight)
 

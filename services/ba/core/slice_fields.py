@@ -15,8 +15,8 @@ def join_slice(whole: torch.Tensor | None, part: torch.Tensor | None, edges: sli
         if whole is not None:
             whole[edges] = False
         return whole
-    if 0 in part.stride() and all(st == 0 or n == 1 for st, n in zip(part.stride(), part.shape)):
-        return part[:1].expand(n_edges, *part.shape[1:])  # an expanded single value (irls.uniform's)
+    if one_value(part):
+        return part[:1].expand(n_edges, *part.shape[1:])  # irls.uniform's
     shape = (n_edges, *part.shape[1:])
     if whole is None or whole.shape != shape or whole.dtype != part.dtype or 0 in whole.stride():
         # a mask that first appears in a later slice is False in the slices before it
@@ -24,3 +24,8 @@ def join_slice(whole: torch.Tensor | None, part: torch.Tensor | None, edges: sli
     if part.data_ptr() != whole[edges].data_ptr():
         whole[edges] = part
     return whole
+
+
+def one_value(field: torch.Tensor) -> bool:
+    """Whether ``field`` is one value expanded to its shape (a broadcast view, no memory of its own)."""
+    return 0 in field.stride() and all(st == 0 or n == 1 for st, n in zip(field.stride(), field.shape))
