@@ -93,7 +93,7 @@ def _targets(fwd: np.ndarray, bwd: np.ndarray, params: FlowParams) -> FlowTarget
     fb_err2 = np.einsum("ijk,ijk->ij", fb, fb)
     land_x, land_y = land[..., 0], land[..., 1]
     inside = (land_x >= -0.5) & (land_x <= width - 0.5) & (land_y >= -0.5) & (land_y <= height - 0.5)
-    conf = (np.exp(-0.5 * fb_err2 / params.fb_sigma**2) * inside).astype(np.float32)
+    conf = np.exp(-0.5 * fb_err2 / params.fb_sigma**2) * inside  # float32; its means summed in float64
     target = (_block_mean(land, params.grid) + 0.5) / params.grid - 0.5
     return FlowTargets(target.astype(np.float32), _block_mean(conf, params.grid), fwd)
 
