@@ -32,6 +32,21 @@ def test_a_copy_with_the_same_values_that_shares_nothing(array):
     assert kept.flags.writeable and kept.flags.c_contiguous
 
 
+def test_where_no_map_can_be_made_the_copy_is_a_plain_one(monkeypatch):
+    """At the kernel's limit of maps (or under strict overcommit) ``mmap`` fails: the copy is made in the heap
+    instead of failing the keyframe or the BA that keeps it."""
+    from services.common import own_pages as module
+
+    def no_map(*args, **kwargs):
+        raise OSError(12, "Cannot allocate memory")
+
+    monkeypatch.setattr(module.mmap, "mmap", no_map)
+    array = np.arange(12.0).reshape(3, 4)
+    kept = own_pages(array)
+    np.testing.assert_array_equal(kept, array)
+    assert not np.shares_memory(kept, array) and kept.base is None  # its own heap buffer, no map behind it
+
+
 # 2,000 arrays of 24 KiB (cached flow targets): on pages of their own the heap does not hold them, and their pages
 # leave when they are freed; the control, plain copies, fill the heap, which keeps their pages after they are freed
 KEPT = textwrap.dedent("""

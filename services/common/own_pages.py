@@ -12,17 +12,34 @@ limit of 65,530 (``vm.max_map_count``)."""
 from __future__ import annotations
 
 import mmap
+import sys
 
 import numpy as np
 
+_MAP_NORESERVE = 0x4000 if sys.platform.startswith("linux") else 0  # no swap accounted for the untouched part
+
+
+def lazy_zeros(shape: tuple[int, ...], dtype) -> np.ndarray:
+    """A zeroed array in an anonymous memory map of its own: the kernel gives a page memory when it is first
+    written, so an array reserved far larger than it is used costs the memory of the part in use, and freeing it
+    returns its pages at once instead of leaving a hole in the heap. Plain zeros where the map cannot be made
+    (strict overcommit, or the kernel's limit of maps)."""
+    size = int(np.prod(shape))
+    try:
+        buffer = mmap.mmap(-1, max(size * np.dtype(dtype).itemsize, 1),
+                           flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS | _MAP_NORESERVE)
+    except OSError:
+        return np.zeros(shape, dtype)
+    return np.frombuffer(buffer, dtype, count=size).reshape(shape)
+
 
 def own_pages(array: np.ndarray) -> np.ndarray:
-    """A writable copy of ``array`` in a memory map of its own (released with the last reference to it)."""
+    """A writable copy of ``array`` in a memory map of its own (released with the last reference to it; a heap copy
+    where no map can be made, e.g. at the kernel's limit of maps)."""
     array = np.asarray(array)
     if array.nbytes == 0:
         return array.copy()
-    pages = mmap.mmap(-1, array.nbytes)
-    kept = np.frombuffer(pages, dtype=array.dtype, count=array.size).reshape(array.shape)
+    kept = lazy_zeros(array.shape, array.dtype)
     kept[...] = array
     return kept
 

@@ -22,14 +22,13 @@ fold does: core/snapping.py).
 
 from __future__ import annotations
 
-import mmap
-import sys
 from dataclasses import dataclass, fields
 from itertools import repeat
 from typing import Iterable, NamedTuple
 
 import numpy as np
 
+from services.common.own_pages import lazy_zeros
 from services.common.pca_codes import CodeMap, convert_sums
 
 _KEY_BITS = 21
@@ -160,21 +159,6 @@ class FusedVoxels(NamedTuple):
 
 
 RESERVED_GRID_BYTES = 1 << 30  # address space a grown grid reserves for its slots (only written pages use memory)
-_MAP_NORESERVE = 0x4000 if sys.platform.startswith("linux") else 0  # no swap accounted for the untouched part
-
-
-def lazy_zeros(shape: tuple[int, ...], dtype) -> np.ndarray:
-    """A zeroed array in an anonymous memory map of its own: the kernel gives a page memory when it is first
-    written, so an array reserved far larger than it is used costs the memory of the part in use, and freeing it
-    returns its pages at once instead of leaving a hole in the heap. Plain zeros where the map cannot be made
-    (strict overcommit)."""
-    size = int(np.prod(shape))
-    try:
-        buffer = mmap.mmap(-1, max(size * np.dtype(dtype).itemsize, 1),
-                           flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS | _MAP_NORESERVE)
-    except OSError:
-        return np.zeros(shape, dtype)
-    return np.frombuffer(buffer, dtype, count=size).reshape(shape)
 
 
 class VoxelGrid:
