@@ -11,7 +11,7 @@ import textwrap
 import numpy as np
 import pytest
 
-from services.common.own_pages import own_pages
+from services.common.own_pages import own_pages, own_pages_packed
 
 glibc = pytest.mark.skipif(not sys.platform.startswith("linux") or not hasattr(ctypes.CDLL(None), "mallopt"),
                            reason="glibc's allocator")
@@ -30,6 +30,36 @@ def test_a_copy_with_the_same_values_that_shares_nothing(array):
     np.testing.assert_array_equal(kept, array)
     assert not np.shares_memory(kept, array)
     assert kept.flags.writeable and kept.flags.c_contiguous
+
+
+def test_a_copy_cast_on_the_way_keeps_the_values_of_the_cast():
+    codes = np.linspace(-3, 3, 24, dtype=np.float32).reshape(2, 3, 4)
+    kept = own_pages(codes, np.float16)
+    assert kept.dtype == np.float16 and kept.shape == codes.shape
+    np.testing.assert_array_equal(kept, codes.astype(np.float16))
+    assert own_pages(np.zeros((0, 4), np.float32), np.float16).dtype == np.float16
+
+
+def test_packed_copies_share_one_map_and_keep_their_values():
+    """A keyframe's voxel sums (int64 keys, float64 and float32 fields of odd lengths, a missing field) packed
+    into one map: every copy equals its source, starts aligned, and writing one leaves its neighbours alone."""
+    arrays = [np.arange(7, dtype=np.int64), np.linspace(0, 1, 21).reshape(7, 3), None,
+              np.arange(35, dtype=np.float32).reshape(7, 5), np.array([1, 2, 3], np.uint8), np.zeros((0, 3))]
+    packed = own_pages_packed(arrays)
+    assert packed[2] is None
+    bases = set()
+    for kept, source in zip(packed, arrays):
+        if source is None:
+            continue
+        assert kept.dtype == source.dtype and kept.shape == source.shape and kept.flags.writeable
+        np.testing.assert_array_equal(kept, source)
+        assert not np.shares_memory(kept, source)
+        assert kept.ctypes.data % 64 == 0 or kept.size == 0
+        bases.add(id(_owner(kept)))
+    assert len(bases) == 1  # one map behind them all
+    packed[1][...] = -1
+    np.testing.assert_array_equal(packed[0], arrays[0])
+    np.testing.assert_array_equal(packed[3], arrays[3])
 
 
 def test_where_no_map_can_be_made_the_copy_is_a_plain_one(monkeypatch):
@@ -53,7 +83,7 @@ KEPT = textwrap.dedent("""
     import ctypes, json, sys
     import numpy as np
     from services.common.lifecycle import tune_malloc_for_tensors
-    from services.common.own_pages import own_pages
+    from services.common.own_pages import own_pages, own_pages_packed
 
     class MallInfo2(ctypes.Structure):
         _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
@@ -118,3 +148,29 @@ def test_a_keyframe_graph_keeps_its_ba_results_and_flows_each_in_storage_of_its_
     flow = graph.targets(0, 1)
     for field in flow:
         assert field.untyped_storage().nbytes() == field.nbytes
+
+
+
+def _owner(array: np.ndarray):
+    """What finally holds ``array``'s memory: a memory map, or the array that owns its heap buffer."""
+    while isinstance(array, np.ndarray) and array.base is not None:
+        array = array.base
+    return array.obj if isinstance(array, memoryview) else array
+
+
+def test_the_map_keeps_each_keyframes_sums_and_unit_codes_in_storage_of_their_own():
+    """What the mapstore's map keeps per live keyframe and rebuilds often (its voxel sums at each re-fusion, its
+    unit codes at each PCA refit) lives outside the heap, the sums of one keyframe in one map."""
+    import mmap
+
+    from services.mapstore.config import MapParams
+    from tests.test_mapstore_core import build_map
+
+    m = build_map(MapParams(), n=4)
+    assert len(m._contrib) == 4
+    for contribution, _ in m._contrib.values():
+        owners = {id(_owner(getattr(contribution, name)))
+                  for name in ("keys", "weight", "xyz", "codes", "colours", "count")}
+        assert len(owners) == 1 and isinstance(_owner(contribution.keys), mmap.mmap)
+    units = [u for u in m._unit_codes.values() if u is not None]
+    assert units and all(isinstance(_owner(u), mmap.mmap) for u in units)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import mmap
 import sys
+from typing import Sequence
 
 import numpy as np
 
@@ -33,13 +34,39 @@ def lazy_zeros(shape: tuple[int, ...], dtype) -> np.ndarray:
     return np.frombuffer(buffer, dtype, count=size).reshape(shape)
 
 
-def own_pages(array: np.ndarray) -> np.ndarray:
-    """A writable copy of ``array`` in a memory map of its own (released with the last reference to it; a heap copy
-    where no map can be made, e.g. at the kernel's limit of maps)."""
+def own_pages(array: np.ndarray, dtype=None) -> np.ndarray:
+    """A writable copy of ``array`` (cast to ``dtype`` if given) in a memory map of its own (released with the last
+    reference to it; a heap copy where no map can be made, e.g. at the kernel's limit of maps)."""
     array = np.asarray(array)
-    if array.nbytes == 0:
-        return array.copy()
-    kept = lazy_zeros(array.shape, array.dtype)
+    dtype = array.dtype if dtype is None else np.dtype(dtype)
+    if array.size == 0:
+        return array.astype(dtype)
+    kept = lazy_zeros(array.shape, dtype)
     kept[...] = array
     return kept
+
+
+_PACKED_ALIGN = 64  # bytes: each array of a pack starts where SIMD loads of any dtype are aligned
+
+
+def own_pages_packed(arrays: Sequence[np.ndarray | None]) -> list[np.ndarray | None]:
+    """Writable copies of ``arrays`` side by side in one memory map of their own (None stays None): for arrays
+    that are made and dropped together, such as a keyframe's voxel sums, at the cost of one map instead of one
+    each. The map lives until the last of the copies is dropped."""
+    arrays = [None if a is None else np.asarray(a) for a in arrays]
+    offsets, total = [], 0
+    for a in arrays:
+        offsets.append(total)
+        if a is not None:
+            total += -(-a.nbytes // _PACKED_ALIGN) * _PACKED_ALIGN
+    buffer = lazy_zeros((max(total, 1),), np.uint8)
+    packed: list[np.ndarray | None] = []
+    for a, offset in zip(arrays, offsets):
+        if a is None:
+            packed.append(None)
+            continue
+        kept = buffer[offset : offset + a.nbytes].view(a.dtype).reshape(a.shape)
+        kept[...] = a
+        packed.append(kept)
+    return packed
 

@@ -42,6 +42,7 @@ from typing import TYPE_CHECKING, Iterator
 import cv2
 import numpy as np
 
+from services.common.own_pages import own_pages
 from services.mapstore.answer_cache import AnswerCache
 from services.mapstore.config import MapstoreSettings
 from services.mapstore.core.geometry import sample_cell_colours
@@ -202,7 +203,7 @@ class MapState(FoldingPolicy):
                 old = self.map.contents.get(kf_id)
                 keep = old is not None and old.has_codes and old.grid_shape == colours.shape[:2]
                 codes, pca_version = (old.codes, old.pca_version) if keep else (None, -1)
-            codes = None if codes is None else np.asarray(codes).astype(np.float16)
+            codes = None if codes is None else own_pages(codes, np.float16)  # kept while live: off the heap
             content = KeyframeContent(kf_id, t_ns, codes, colours, image.shape[:2], pca_version)
             self.store.put_keyframe(content, intrinsics, jpeg, realtime, thumbnail)
             self.intrinsics[kf_id] = np.asarray(intrinsics, np.float64)
@@ -224,7 +225,7 @@ class MapState(FoldingPolicy):
         """Commit then apply the codes (h, w, K) of keyframe ``kf_id`` (coded with basis ``pca_version``): it is
         re-fused with them. Codes before their keyframe wait (in memory) for it; codes before their basis are
         committed and wait for it (the keyframe stays in the map for geometry meanwhile)."""
-        codes = np.asarray(codes).astype(np.float16)
+        codes = own_pages(codes, np.float16)  # kept while the keyframe is live: off the heap
         with self.lock:
             if self.map.is_folded(kf_id):  # folded before its codes came (real-time, or past max_live_keyframes)
                 self.store.put_codes(kf_id, pca_version, codes)

@@ -8,6 +8,7 @@ from bisect import bisect_left
 
 import numpy as np
 
+from services.common.own_pages import own_pages
 from services.common.pca_codes import convert_codes
 from services.mapstore.core.carving import CarveView, free_space_votes, unit_codes
 from services.mapstore.core.keyframe import candidate_points, world_points
@@ -53,7 +54,8 @@ class Carving:
             else:
                 cmap = self._code_maps.get(content.pca_version)
                 codes = content.codes if cmap is None or cmap.is_identity else convert_codes(content.codes, cmap)
-                self._unit_codes[kf_id] = unit_codes(codes)
+                # kept on pages of its own: ~0.4 MB a keyframe, rebuilt for every live keyframe at each PCA refit
+                self._unit_codes[kf_id] = own_pages(unit_codes(codes))
         return self._unit_codes[kf_id]
 
     def _carved_mask(self, xyz: np.ndarray, cells: np.ndarray, kf_id: int) -> np.ndarray:

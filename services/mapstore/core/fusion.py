@@ -28,7 +28,7 @@ from typing import Iterable, NamedTuple
 
 import numpy as np
 
-from services.common.own_pages import lazy_zeros
+from services.common.own_pages import lazy_zeros, own_pages_packed
 from services.common.pca_codes import CodeMap, convert_sums
 
 _KEY_BITS = 21
@@ -66,6 +66,13 @@ class Contribution:
     codes: np.ndarray | None
     colours: np.ndarray
     count: np.ndarray
+
+    def on_own_pages(self) -> "Contribution":
+        """The same sums in one memory map of their own, for a contribution the map keeps until its keyframe is
+        re-fused (`own_pages_packed`). Re-fusion made and dropped these arrays (~0.4 MB a keyframe, a different
+        size each time) tens of thousands of times on the 10,000-frame stream, and they cut the heap into holes
+        that nothing else fit: its free part grew 43 -> 66 MB after frame 1,000 (docs/BENCHMARKS.md)."""
+        return Contribution(*own_pages_packed([getattr(self, f.name) for f in fields(self)]))
 
 
 def make_contribution(

@@ -301,6 +301,7 @@ class KeyframeMap(Carving, Folding):
             if self._grid is None:
                 self._grid = VoxelGrid(self._code_dim(pts.codes, cmap))
             contribution = make_contribution(pts.xyz, pts.weight, pts.codes, pts.colours, self.voxel_size)
+            contribution = contribution.on_own_pages()  # kept until the next re-fusion: off the heap
             self._grid.apply(contribution, +1, cmap)
             self._contrib[kf_id] = (contribution, version)
         if dirty:
