@@ -71,7 +71,7 @@ class Contribution:
         """The same sums in one memory map of their own, for a contribution the map keeps until its keyframe is
         re-fused (`own_pages_packed`). Re-fusion made and dropped these arrays (~0.4 MB a keyframe, a different
         size each time) tens of thousands of times on the 10,000-frame stream, and they cut the heap into holes
-        that nothing else fit: its free part grew 43 -> 66 MB after frame 1,000 (docs/BENCHMARKS.md)."""
+        that nothing else fit: its free part grew 43 -> 62 MB after frame 1,000 (docs/BENCHMARKS.md)."""
         return Contribution(*own_pages_packed([getattr(self, f.name) for f in fields(self)]))
 
 
