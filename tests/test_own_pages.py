@@ -83,7 +83,7 @@ KEPT = textwrap.dedent("""
     import ctypes, json, sys
     import numpy as np
     from services.common.lifecycle import tune_malloc_for_tensors
-    from services.common.own_pages import own_pages, own_pages_packed
+    from services.common.own_pages import own_pages
 
     class MallInfo2(ctypes.Structure):
         _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
@@ -150,7 +150,6 @@ def test_a_keyframe_graph_keeps_its_ba_results_and_flows_each_in_storage_of_its_
         assert field.untyped_storage().nbytes() == field.nbytes
 
 
-
 def _owner(array: np.ndarray):
     """What finally holds ``array``'s memory: a memory map, or the array that owns its heap buffer."""
     while isinstance(array, np.ndarray) and array.base is not None:
@@ -161,6 +160,7 @@ def _owner(array: np.ndarray):
 def test_the_map_keeps_each_keyframes_sums_and_unit_codes_in_storage_of_their_own():
     """What the mapstore's map keeps per live keyframe and rebuilds often (its voxel sums at each re-fusion, its
     unit codes at each PCA refit) lives outside the heap, the sums of one keyframe in one map."""
+    import dataclasses
     import mmap
 
     from services.mapstore.config import MapParams
@@ -169,8 +169,7 @@ def test_the_map_keeps_each_keyframes_sums_and_unit_codes_in_storage_of_their_ow
     m = build_map(MapParams(), n=4)
     assert len(m._contrib) == 4
     for contribution, _ in m._contrib.values():
-        owners = {id(_owner(getattr(contribution, name)))
-                  for name in ("keys", "weight", "xyz", "codes", "colours", "count")}
+        owners = {id(_owner(getattr(contribution, f.name))) for f in dataclasses.fields(contribution)}
         assert len(owners) == 1 and isinstance(_owner(contribution.keys), mmap.mmap)
     units = [u for u in m._unit_codes.values() if u is not None]
     assert units and all(isinstance(_owner(u), mmap.mmap) for u in units)
