@@ -19,8 +19,8 @@ Modes (several may be given; each is one run):
                    demo's motion per frame, circling the room) that records every
                    service's RSS each 500 frames (summary rss_mb_at_frames) and reports ba's and the mapstore's
                    growth after the first 1,000 frames (those samples, and each one's high-water RSS over the first
-                   1,000 frames against any later 1,000, from resources.csv) and the end-of-stream time (ingest's
-                   EOS → the last stage's)
+                   1,000 frames against any later 1,000, from resources.csv; and each later 1,000 frames' median,
+                   the level between bursts) and the end-of-stream time (ingest's EOS → the last stage's)
 
 Usage:
   python bench/live.py --kitti
@@ -232,7 +232,8 @@ def high_water_rows(summary: dict, out_dir: Path | None) -> list[tuple[str, str]
     1,000 frames, streaming (before ingest's EOS) and with the end of stream: like against like. The samples every
     500 frames above are single instants of processes whose BAs and re-fusions come and go in bursts of a few
     hundred MB, so they say more about where a burst fell than about growth. From the run's resources.csv (every
-    0.5 s), mapped to frames through the series' timestamps (the last record is taken at the end of the stream)."""
+    0.5 s), mapped to frames through the series' timestamps (the last record is taken at the end of the stream).
+    Also each later 1,000 frames' median sample against frames 900–1,000's: the level the bursts rise from."""
     series = summary.get("rss_mb_at_frames") or []
     path = None if out_dir is None else out_dir / "resources.csv"
     if path is None or not path.is_file() or len(series) < 3 or series[-2]["frames"] < 2000:
@@ -258,6 +259,15 @@ def high_water_rows(summary: dict, out_dir: Path | None) -> list[tuple[str, str]
                      f"{with_end:.0f} MB ({100 * (with_end - base) / base:+.1f} %)"))
         rows.append((f"{name}: high-water RSS per 1,000 frames after the first (MB)",
                      ", ".join(f"{1000 * k}–{1000 * (k + 1)}: {v:.0f}" for k, v in sorted(per_k.items()))))
+        # the level between bursts: a block's median sample, against the last 100 frames of the first 1,000 (the
+        # first 1,000 frames fill the window, so their median is no level)
+        settled = rss[(frame > 900) & (frame <= 1000)]
+        level = {int(k): float(np.median(rss[later][block == k])) for k in np.unique(block)}
+        if settled.size:
+            ref = float(np.median(settled))
+            rows.append((f"{name}: median RSS, frames 900–1,000 → each later 1,000 (the level between bursts, MB)",
+                         f"{ref:.0f} → " + ", ".join(f"{v:.0f}" for _, v in sorted(level.items()))
+                         + f" ({100 * (max(level.values()) - ref) / ref:+.1f} % at most)"))
     return rows
 
 
