@@ -177,3 +177,28 @@ def test_frames_that_come_while_the_tracking_process_starts_are_held_and_all_pos
         loop.stop()
     assert inbox.dropped == 0 and loop.tracked == len(frames)  # each one a provisional pose before the map
     assert loop.in_process and inbox.maxsize == 3 and inbox.bound == 3  # back at its real-time bound
+
+
+def test_a_process_started_ahead_that_no_stream_took_is_closed_once_it_is_up():
+    """ba stopped right after it started: the spare finishes coming up and is closed, not cut off mid-spawn (that
+    left an EOFError traceback in ba's log)."""
+    import multiprocessing
+
+    from services.ba import tracking_process
+
+    def tracking_children():
+        return [p for p in multiprocessing.active_children() if p.name == "kmvipe-tracking"]
+
+    try:
+        tracking_process.prewarm(BaSettings().tracker_factory())
+        tracking_process.discard_spare()  # at once: while the child is still coming up
+        assert tracking_process._Spare.ready is None and not tracking_children()
+        tracking_process._Spare.starting = None  # again, with the spare up before it is discarded
+        tracking_process.prewarm(BaSettings().tracker_factory())
+        tracking_process._Spare.starting.join(60)
+        spare = tracking_process._Spare.ready._proc
+        assert spare.is_alive() and tracking_children() == [spare]
+        tracking_process.discard_spare()
+        assert not spare.is_alive() and spare.exitcode == 0 and not tracking_children()
+    finally:
+        tracking_process._Spare.starting = tracking_process._Spare.ready = None

@@ -8,7 +8,7 @@ import sys
 from services.ba.checkpoint import pending
 from services.ba.service import build_state, run
 from services.ba.settings import BaSettings
-from services.ba.tracking_process import prewarm
+from services.ba.tracking_process import discard_spare, prewarm
 from services.common.lifecycle import tune_malloc_for_tensors
 from services.common.service_main import service_main
 from services.common.streams import serve
@@ -23,7 +23,10 @@ def _body(bus, stop) -> None:
         settings = cfg.model_copy(update={"stream": stream})
         run(settings, stream_bus, stream_stop, build_state(settings))
 
-    serve(cfg.stream, bus, stop, one, resume=lambda: pending(cfg.checkpoint_dir))  # streams killed mid-way
+    try:
+        serve(cfg.stream, bus, stop, one, resume=lambda: pending(cfg.checkpoint_dir))  # streams killed mid-way
+    finally:
+        discard_spare()  # stopped before a stream took it
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -255,6 +255,20 @@ def prewarm(make_tracker: Callable[[], Tracker], niceness: int = 0) -> None:
             _Spare.starting.start()
 
 
+def discard_spare(timeout_s: float = 10.0) -> None:
+    """Close the process :func:`prewarm` started if no stream took it, once it is up (or ``timeout_s`` passed): ba
+    stopped while the child still read what the parent sends a spawned process left a traceback in ba's log
+    (``EOFError`` in ``multiprocessing.spawn``) when the parent's exit cut that pipe."""
+    with _Spare.lock:
+        starting = _Spare.starting
+    if starting is not None:
+        starting.join(timeout=timeout_s)
+    with _Spare.lock:
+        spare, _Spare.ready = _Spare.ready, None
+    if spare is not None:
+        spare.close()
+
+
 def _same_factory(a: Callable, b: Callable) -> bool:
     if isinstance(a, functools.partial) and isinstance(b, functools.partial):
         return (a.func, a.args, a.keywords) == (b.func, b.args, b.keywords)
