@@ -262,9 +262,9 @@ def high_water_rows(summary: dict, out_dir: Path | None) -> list[tuple[str, str]
         # the level between bursts: a block's median sample, against the last 100 frames of the first 1,000 (the
         # first 1,000 frames fill the window, so their median is no level)
         settled = rss[(frame > 900) & (frame <= 1000)]
-        level = {int(k): float(np.median(rss[later][block == k])) for k in np.unique(block)}
         if settled.size:
-            ref = float(np.median(settled))
+            later_rss, ref = rss[later], float(np.median(settled))
+            level = {int(k): float(np.median(later_rss[block == k])) for k in np.unique(block)}
             rows.append((f"{name}: median RSS, frames 900–1,000 → each later 1,000 (the level between bursts, MB)",
                          f"{ref:.0f} → " + ", ".join(f"{v:.0f}" for _, v in sorted(level.items()))
                          + f" ({100 * (max(level.values()) - ref) / ref:+.1f} % at most)"))

@@ -259,14 +259,22 @@ def discard_spare(timeout_s: float = 10.0) -> None:
     """Close the process :func:`prewarm` started if no stream took it, once it is up (or ``timeout_s`` passed): ba
     stopped while the child still read what the parent sends a spawned process left a traceback in ba's log
     (``EOFError`` in ``multiprocessing.spawn``) when the parent's exit cut that pipe."""
-    with _Spare.lock:
-        starting = _Spare.starting
-    if starting is not None:
-        starting.join(timeout=timeout_s)
-    with _Spare.lock:
-        spare, _Spare.ready = _Spare.ready, None
+    spare = _claim_spare(timeout_s)
     if spare is not None:
         spare.close()
+
+
+def _claim_spare(timeout_s: float) -> TrackerProcess | None:
+    """The process :func:`prewarm` started, taken from it once it is up (waiting ``timeout_s`` at most); None when
+    none was started or it failed."""
+    with _Spare.lock:
+        starting = _Spare.starting
+    if starting is None:
+        return None
+    starting.join(timeout=timeout_s)
+    with _Spare.lock:
+        spare, _Spare.ready = _Spare.ready, None
+    return spare
 
 
 def _same_factory(a: Callable, b: Callable) -> bool:
@@ -277,13 +285,7 @@ def _same_factory(a: Callable, b: Callable) -> bool:
 
 def _take_spare(make_tracker: Callable[[], Tracker], niceness: int) -> TrackerProcess | None:
     """The process :func:`prewarm` started, when it tracks with the same settings (waiting for it to come up)."""
-    with _Spare.lock:
-        starting = _Spare.starting
-    if starting is None:
-        return None
-    starting.join(timeout=60)
-    with _Spare.lock:
-        spare, _Spare.ready = _Spare.ready, None
+    spare = _claim_spare(60.0)
     if spare is None or spare.niceness != niceness or not _same_factory(spare.make_tracker, make_tracker):
         if spare is not None:
             spare.close()
