@@ -1,6 +1,8 @@
 # One image for every KM-ViPE service; docker-compose picks the service with `kmvipe service NAME`.
 FROM python:3.11-slim
-RUN apt-get update && apt-get install -y --no-install-recommends libgl1 libglib2.0-0 && rm -rf /var/lib/apt/lists/*
+# libtcmalloc-minimal4: the allocator ba runs on (services/common/allocator.py; docs/BENCHMARKS.md, forty-seventh session)
+RUN apt-get update && apt-get install -y --no-install-recommends libgl1 libglib2.0-0 libtcmalloc-minimal4 \
+    && rm -rf /var/lib/apt/lists/*
 WORKDIR /app
 COPY pyproject.toml README.md ./
 COPY scripts scripts

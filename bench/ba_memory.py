@@ -6,14 +6,22 @@ slice of edges at a time. Each variant runs in a fresh process (peak RSS is a pr
 synthetic window of ``--keyframes`` on the ``--grid`` with the service's global-BA parameters, ARK codes on, and
 ``--iters`` LM iterations from a perturbed start.
 
-Usage: ``python bench/ba_memory.py [--keyframes 100] [--radius 3] [--grid 48x64] [--slices 0,96,32] [--iters 3]``
-Prints a markdown table: edges, slice, peak RSS over the process's RSS before the BA, seconds, final cost.
+``--allocators glibc,tcmalloc`` runs each variant on each C allocator (services/common/allocator.py; TCMalloc
+preloaded into the variant's process) and ``--repeat N`` runs the same BA N times in that process, as ba runs one
+background BA after another: the first pays for fresh pages, the later ones show what the allocator reuses.
+
+Usage: ``python bench/ba_memory.py [--keyframes 100] [--radius 3] [--grid 48x64] [--slices 0,96,32] [--iters 3]
+[--allocators glibc] [--repeat 1]``
+Prints a markdown table: allocator, edges, slice, peak RSS over the process's RSS before the BA, RSS after the
+last BA, seconds (the first BA; the median of the later ones), final cost.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
+import statistics
 import subprocess
 import sys
 import time
@@ -26,11 +34,12 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # run from any directory
 from services.ba.core import ba, synthetic  # noqa: E402
 from services.ba.settings import BaSettings  # noqa: E402
+from services.common import allocator  # noqa: E402
 from services.common.lifecycle import tune_malloc_for_tensors  # noqa: E402
 
 
-def one(keyframes: int, radius: int, h: int, w: int, slices: int, iters: int) -> dict:
-    """One BA in this process: its figures."""
+def one(keyframes: int, radius: int, h: int, w: int, slices: int, iters: int, repeat: int = 1) -> dict:
+    """``repeat`` times the same BA in this process: its figures."""
     torch.set_num_threads(1)
     tune_malloc_for_tensors()  # as the ba service
     win = synthetic.make_window(n=keyframes, h=h, w=w, focal=0.55 * w, radius=radius, seed=0)
@@ -42,12 +51,16 @@ def one(keyframes: int, radius: int, h: int, w: int, slices: int, iters: int) ->
                        win.truth.intrinsics)
     params = replace(BaSettings().ba_params(global_ba=True), iterations=iters, linearise_edges=slices)
     before = psutil.Process().memory_info().rss
-    t0 = time.perf_counter()
-    res = ba.run_ba(start, problem, params)
-    seconds = time.perf_counter() - t0
+    seconds = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        res = ba.run_ba(start, problem, params)
+        seconds.append(time.perf_counter() - t0)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # Linux: KiB
-    return {"edges": len(problem.ii), "slices": slices, "peak_mb": (peak - before) / 1e6, "seconds": seconds,
-            "cost": res.costs[-1], "iterations": len(res.costs) - 1}
+    return {"edges": len(problem.ii), "slices": slices, "peak_mb": (peak - before) / 1e6, "seconds": seconds[0],
+            "later_s": statistics.median(seconds[1:]) if repeat > 1 else None, "allocator": allocator.in_use(),
+            "after_mb": psutil.Process().memory_info().rss / 1e6, "cost": res.costs[-1],
+            "iterations": len(res.costs) - 1}
 
 
 def main() -> None:
@@ -57,23 +70,36 @@ def main() -> None:
     parser.add_argument("--grid", default="48x64", help="grid h x w (working 384x512 -> 48x64)")
     parser.add_argument("--slices", default="0,96,32", help="linearise_edges values (0: every edge at once)")
     parser.add_argument("--iters", type=int, default=3)
+    parser.add_argument("--allocators", default="glibc", help="glibc, tcmalloc or both (comma-separated)")
+    parser.add_argument("--repeat", type=int, default=1, help="BAs run one after another in each process")
     parser.add_argument("--child", type=int, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     h, w = (int(v) for v in args.grid.split("x"))
     if args.child is not None:
-        print(json.dumps(one(args.keyframes, args.radius, h, w, args.child, args.iters)))
+        print(json.dumps(one(args.keyframes, args.radius, h, w, args.child, args.iters, args.repeat)))
         return
     rows = []
-    for slices in (int(v) for v in args.slices.split(",")):
-        argv = [sys.executable, __file__, "--keyframes", str(args.keyframes), "--radius", str(args.radius),
-                "--grid", args.grid, "--iters", str(args.iters), "--child", str(slices)]
-        rows.append(json.loads(subprocess.run(argv, check=True, capture_output=True, text=True).stdout))
-        print(f"slice {slices or 'all'}: {rows[-1]['peak_mb']:.0f} MB, {rows[-1]['seconds']:.1f} s", file=sys.stderr)
-    print("| keyframes | edges | edges per slice | peak RSS over start (MB) | s | LM iterations | final cost |")
-    print("|---|---|---|---|---|---|---|")
+    for name in args.allocators.split(","):
+        env = dict(os.environ)
+        if name != "glibc":  # the library this process cannot load itself (it allocates already): its own child's
+            env = allocator.preload_environment(name, env)
+        for slices in (int(v) for v in args.slices.split(",")):
+            argv = [sys.executable, __file__, "--keyframes", str(args.keyframes), "--radius", str(args.radius),
+                    "--grid", args.grid, "--iters", str(args.iters), "--repeat", str(args.repeat),
+                    "--child", str(slices)]
+            rows.append(json.loads(subprocess.run(argv, check=True, capture_output=True, text=True,
+                                                  env=env).stdout))
+            if rows[-1]["allocator"] != name:
+                raise SystemExit(f"the BA ran on {rows[-1]['allocator']}, not {name}: is its library installed?")
+            print(f"{name}, slice {slices or 'all'}: {rows[-1]['peak_mb']:.0f} MB, {rows[-1]['seconds']:.1f} s",
+                  file=sys.stderr)
+    print("| allocator | keyframes | edges | edges per slice | peak RSS over start (MB) | RSS after (MB) | s: first BA "
+          "/ later (median) | LM iterations | final cost |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {args.keyframes} | {r['edges']} | {r['slices'] or 'all'} | {r['peak_mb']:.0f} | {r['seconds']:.1f} "
-              f"| {r['iterations']} | {r['cost']:.6g} |")
+        later = "–" if r["later_s"] is None else f"{r['later_s']:.2f}"
+        print(f"| {r['allocator']} | {args.keyframes} | {r['edges']} | {r['slices'] or 'all'} | {r['peak_mb']:.0f} "
+              f"| {r['after_mb']:.0f} | {r['seconds']:.2f} / {later} | {r['iterations']} | {r['cost']:.6g} |")
 
 
 if __name__ == "__main__":

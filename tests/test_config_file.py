@@ -19,6 +19,7 @@ from pydantic import ValidationError
 from pydantic_settings import BaseSettings
 
 from services.ba.settings import BaSettings
+from services.common import allocator
 from services.common.bus import Bus
 from services.common.config import BusSettings, LogSettings, MetricsSettings
 from services.common.config_file import CONFIG_ENV, TABLES, KmVipeSettings, table_of
@@ -241,6 +242,9 @@ device = "cpu"
             lines = [json.loads(line) for line in log_path.read_text().splitlines() if line.startswith("{")]
             ready_line = next(line for line in lines if line["message"] == "ba ready")
             assert ready_line["stream"] == stream and ready_line["device"] == "cpu"
+            # the allocator it runs on by default ([malloc] not set): TCMalloc where installed (allocator.ensure)
+            starting = next(line for line in lines if line["message"] == "ba starting")
+            assert starting["allocator"] == ("tcmalloc" if allocator.library("tcmalloc") else "glibc")
         finally:
             stop_cleanly(proc, log_path)
 

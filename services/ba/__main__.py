@@ -9,6 +9,8 @@ from services.ba.checkpoint import pending
 from services.ba.service import build_state, run
 from services.ba.settings import BaSettings
 from services.ba.tracking_process import discard_spare, prewarm
+from services.common.allocator import ensure
+from services.common.errors import KmVipeError
 from services.common.lifecycle import tune_malloc_for_tensors
 from services.common.service_main import service_main
 from services.common.streams import serve
@@ -34,4 +36,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    try:
+        ensure("ba")  # as `kmvipe service ba` does: may execute this process again on TCMalloc
+    except KmVipeError as exc:
+        sys.exit(f"ba: {exc}")
     sys.exit(main())

@@ -80,6 +80,19 @@ class LogSettings(KmVipeSettings):
     """text: ``time level logger message key=value…``; json: one object per line for log shippers."""
 
 
+Allocator = Literal["auto", "glibc", "tcmalloc"]
+
+
+class MallocSettings(KmVipeSettings):
+    """The C allocator of one service process."""
+
+    model_config = SettingsConfigDict(env_prefix="KMVIPE_MALLOC_", env_file=".env", extra="ignore")
+
+    allocator: Allocator = "auto"
+    """auto (the default): TCMalloc for ba where it is installed (:mod:`services.common.allocator`), else glibc; tcmalloc: required
+    (the service exits with how to install it); glibc: never preload anything."""
+
+
 class MetricsSettings(KmVipeSettings):
     """The metrics and health endpoints of a service process (``/metrics``, ``/livez``, ``/readyz``;
     :mod:`services.common.metrics`)."""

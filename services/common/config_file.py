@@ -39,7 +39,7 @@ CONFIG_ENV = "KMVIPE_CONFIG"
 """The environment variable that names the settings file (unset or empty: no file)."""
 ENV_ROOT = "KMVIPE_"
 
-TABLES = ("bus", "log", "metrics", "streams", "shard", "ingest", "features", "ba", "mapstore", "query", "ros2",
+TABLES = ("bus", "log", "metrics", "malloc", "streams", "shard", "ingest", "features", "ba", "mapstore", "query", "ros2",
           "ros2_zenoh")
 """Every table a file may hold: one per settings prefix (``KMVIPE_<TABLE>_``). Listed here, not collected from the
 classes, because one process imports only its own service's classes, yet must still refuse a misspelt table meant

@@ -8,6 +8,8 @@ import signal
 import threading
 import time
 
+from .allocator import in_use
+
 log = logging.getLogger(__name__)
 
 
@@ -67,17 +69,21 @@ def tune_malloc_for_tensors(keep_mib: int = 512, own_pages_mib: int = 8) -> None
 
 
 def release_free_memory() -> bool:
-    """glibc: give the pages of freed heap back to the kernel now (``malloc_trim(0)``; since glibc 2.8 it also
-    releases free pages inside every arena, not only at the heap's top). The tunings above keep freed heap for
-    speed, so a process's RSS only ever grows: a one-off burst (a model parsed and compiled at load, an
-    end-of-stream BA) stays resident, and over a long stream the heap fragments into holes nobody reuses (ba: +41 %
-    from 1,000 to 10,000 synthetic frames in three steps). Called between bursts, never inside one: the next
-    burst faults its pages in again (~0.2 s per 500 MB). Returns whether anything was released."""
+    """Give the pages of freed heap back to the kernel now: glibc's ``malloc_trim(0)`` (since glibc 2.8 it also
+    releases free pages inside every arena, not only at the heap's top), or TCMalloc's ``ReleaseFreeMemory`` in a
+    process that runs on it (:mod:`services.common.allocator`). The tunings above keep freed heap for speed, so a
+    process's RSS only ever grows: a one-off burst (a model parsed and compiled at load, an end-of-stream BA) stays
+    resident, and over a long stream glibc's heap fragments into holes nobody reuses (ba: +41 % from 1,000 to 10,000
+    synthetic frames in three steps). Called between bursts, never inside one: the next burst faults its pages in
+    again (~0.2 s per 500 MB). Returns whether anything was released (TCMalloc does not say: True)."""
     gc.collect()  # cycles hold tensors and arrays too; free them before trimming
     try:
         libc = ctypes.CDLL(None)
     except OSError:
         return False
+    if hasattr(libc, "MallocExtension_ReleaseFreeMemory"):  # TCMalloc preloaded: glibc's heap is not in use
+        libc.MallocExtension_ReleaseFreeMemory()
+        return True
     if not hasattr(libc, "malloc_trim"):  # not glibc
         return False
     return bool(libc.malloc_trim(0))
@@ -120,10 +126,15 @@ class MemoryRelease:
         self.period_s = period_s
         self._period = Period(period_s, clock)
         self.count = 0
+        # TCMalloc reuses what a burst freed, by size class, for the next one: a periodic release would only make
+        # that burst fault its pages in again. ba ran its 5,000-frame check on TCMalloc without one (+3.5 %, against
+        # glibc's +7.4 % with one every 10 s; docs/BENCHMARKS.md, forty-seventh session)
+        self.periodic = in_use() == "glibc"
 
     def maybe(self) -> bool:
-        """Release now if the period has passed since the last release; True when it ran."""
-        if self.period_s <= 0 or not self._period.due():
+        """Release now if the period has passed since the last release (glibc's heap only: see ``periodic``);
+        True when it ran."""
+        if self.period_s <= 0 or not self.periodic or not self._period.due():
             return False
         self._release()
         return True

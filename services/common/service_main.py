@@ -10,7 +10,7 @@ from typing import Callable
 
 from pydantic import ValidationError
 
-from . import metrics
+from . import allocator, metrics
 from .bus import Bus
 from .config import BusSettings, MetricsSettings
 from .errors import KmVipeError
@@ -58,6 +58,7 @@ def service_main(name: str, body: ServiceBody, tune_malloc: Callable[[], None] |
     for handler in logging.getLogger().handlers:
         handler.addFilter(StreamField())
     stop = stop_on_signals()
+    log.info(f"{name} starting", extra={"allocator": allocator.in_use()})  # services.common.allocator
     if tune_malloc is not None:
         tune_malloc()
     if blas_threads is not None:
