@@ -98,7 +98,7 @@ def test_ba_runs_on_tcmalloc_its_children_on_glibc_and_a_release_gives_back_what
 
 
 @needs_tcmalloc
-def test_a_user_preload_is_kept_beside_tcmalloc_and_given_back_to_children(tmp_path):
+def test_a_user_preload_is_kept_beside_tcmalloc_and_given_back_to_children():
     preload = subprocess.run(["sh", "-c", "ldconfig -p | grep -o '/[^ ]*libm\\.so\\.6' | head -1"],
                              capture_output=True, text=True).stdout.strip()
     if not preload:

@@ -1,8 +1,8 @@
 """Which malloc a service process runs on: glibc's, or TCMalloc (gperftools) preloaded into it.
 
 ba's dense BAs allocate and free gigabytes of mid-size buffers (a 48-edge slice's (edges, pixels) fields,
-0.6–7 MB each) between long-lived arrays. glibc's heap cuts up around them: over a 10,000-frame stream ba's level
-rose 729 → 816 MB (+12 %) while nothing it holds grew, and the trims, own pages and arena limits of earlier
+0.6–7 MB each) between long-lived arrays. glibc's heap cuts up around them: over 5,000 frames of the memory check
+ba's level rose 729 → 816 MB (+12 %) while nothing it holds grew, and the trims, own pages and arena limits of earlier
 sessions only slowed that (docs/BENCHMARKS.md). TCMalloc keeps freed memory in size classes, so a later BA reuses
 what an earlier one freed; the same BA also runs ~20 % faster on it. The PyTorch performance guide recommends it
 for CPU work for the same reasons.

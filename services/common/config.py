@@ -89,8 +89,8 @@ class MallocSettings(KmVipeSettings):
     model_config = SettingsConfigDict(env_prefix="KMVIPE_MALLOC_", env_file=".env", extra="ignore")
 
     allocator: Allocator = "auto"
-    """auto (the default): TCMalloc for ba where it is installed (:mod:`services.common.allocator`), else glibc; tcmalloc: required
-    (the service exits with how to install it); glibc: never preload anything."""
+    """auto (the default): TCMalloc for ba where it is installed (:mod:`services.common.allocator`), else glibc;
+    tcmalloc: required (the service exits with how to install it); glibc: never preload anything."""
 
 
 class MetricsSettings(KmVipeSettings):
