@@ -51,7 +51,10 @@ def in_use() -> str:
 
 
 def library(allocator: str) -> str | None:
-    """The shared library of ``allocator`` as the dynamic loader finds it (its soname), or None if not installed."""
+    """The shared library of ``allocator`` as the dynamic loader finds it (its soname), or None if not installed
+    or not on Linux (``LD_PRELOAD`` is the Linux loader's)."""
+    if not sys.platform.startswith("linux"):
+        return None
     for name in _LIBRARIES.get(allocator, ()):
         found = ctypes.util.find_library(name)
         if found:
