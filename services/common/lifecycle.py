@@ -81,7 +81,7 @@ def release_free_memory() -> bool:
         libc = ctypes.CDLL(None)
     except OSError:
         return False
-    if hasattr(libc, "MallocExtension_ReleaseFreeMemory"):  # TCMalloc preloaded: glibc's heap is not in use
+    if in_use() == "tcmalloc":  # preloaded (services.common.allocator): glibc's heap is not in use
         libc.MallocExtension_ReleaseFreeMemory()
         return True
     if not hasattr(libc, "malloc_trim"):  # not glibc
