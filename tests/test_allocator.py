@@ -81,6 +81,19 @@ def test_a_bad_setting_stops_the_service_with_the_setting_named_and_no_traceback
     assert "KMVIPE_MALLOC_" in result.stderr and "'auto', 'glibc' or 'tcmalloc'" in result.stderr
 
 
+def test_python_m_services_ba_takes_its_allocator_before_it_imports_torch():
+    """`python -m services.ba` runs `ensure` first: a bad setting stops it (exit code 2, no traceback) before torch
+    is imported, so an exec onto TCMalloc would not pay for torch's import twice."""
+    environ = {k: v for k, v in os.environ.items() if not k.startswith("KMVIPE_")}
+    result = subprocess.run([sys.executable, "-X", "importtime", "-m", "services.ba"], cwd=REPO, capture_output=True,
+                            text=True, timeout=120, env={**environ, "PYTHONPATH": str(REPO),
+                                                         "KMVIPE_MALLOC_ALLOCATOR": "jemalloc"})
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr[-2000:]
+    assert "KMVIPE_MALLOC_" in result.stderr
+    imported = {line.split("|")[-1].strip() for line in result.stderr.splitlines() if line.startswith("import time:")}
+    assert "services.common.allocator" in imported and "torch" not in imported
+
+
 def test_a_process_on_glibc_stays_on_it_and_is_not_executed_again():
     report = _probe("features")
     assert report["in_use"] == "glibc" and report["child"] == "glibc" and report["ld_preload"] == ""

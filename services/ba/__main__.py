@@ -5,10 +5,6 @@ from __future__ import annotations
 
 import sys
 
-from services.ba.checkpoint import pending
-from services.ba.service import build_state, run
-from services.ba.settings import BaSettings
-from services.ba.tracking_process import discard_spare, prewarm
 from services.common.allocator import ensure
 from services.common.errors import KmVipeError
 from services.common.lifecycle import tune_malloc_for_tensors
@@ -17,6 +13,13 @@ from services.common.streams import serve
 
 
 def _body(bus, stop) -> None:
+    # imported here, not at the top: `python -m services.ba` runs `ensure` first, and when that executes the process
+    # again on TCMalloc, torch (~2 s) has not been imported for nothing
+    from services.ba.checkpoint import pending
+    from services.ba.service import build_state, run
+    from services.ba.settings import BaSettings
+    from services.ba.tracking_process import discard_spare, prewarm
+
     cfg = BaSettings()
     if cfg.tracking_process:  # its torch import overlaps with waiting for the first stream
         prewarm(cfg.tracker_factory(), cfg.tracking_nice)
@@ -39,5 +42,6 @@ if __name__ == "__main__":
     try:
         ensure("ba")  # as `kmvipe service ba` does: may execute this process again on TCMalloc
     except KmVipeError as exc:
-        sys.exit(f"ba: {exc}")
+        print(f"ba: {exc}", file=sys.stderr)
+        sys.exit(2)  # as the runner and `kmvipe service` exit on a setting
     sys.exit(main())
