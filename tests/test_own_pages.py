@@ -11,7 +11,7 @@ import textwrap
 import numpy as np
 import pytest
 
-from services.common.own_pages import own_pages, own_pages_packed
+from services.common.own_pages import lazy_zeros, own_pages, own_pages_packed, release_rows
 
 glibc = pytest.mark.skipif(not sys.platform.startswith("linux") or not hasattr(ctypes.CDLL(None), "mallopt"),
                            reason="glibc's allocator")
@@ -173,3 +173,30 @@ def test_the_map_keeps_each_keyframes_sums_and_unit_codes_in_storage_of_their_ow
         assert len(owners) == 1 and isinstance(_owner(contribution.keys), mmap.mmap)
     units = [u for u in m._unit_codes.values() if u is not None]
     assert units and all(isinstance(_owner(u), mmap.mmap) for u in units)
+
+
+def test_released_rows_read_as_zeros_and_their_pages_leave_the_process():
+    """A reserved array whose use shrank: the rows past the ones kept read as zeros, the kept ones keep their
+    values, and the process's resident memory falls by about the pages past them."""
+    import psutil
+
+    process = psutil.Process()
+    array = lazy_zeros((1 << 20, 8), np.float64)  # 64 MiB
+    array[:] = 1.5
+    before = process.memory_info().rss
+    handed_back = release_rows(array, 1 << 18, written_rows=array.shape[0])
+    freed = before - process.memory_info().rss
+    assert handed_back >= 48 << 20 and freed > 40 << 20, (handed_back, freed)
+    assert (array[: 1 << 18] == 1.5).all() and not array[1 << 18 :].any()
+    array[-1] = 2.0  # still writable: the page comes back
+    assert array[-1, 0] == 2.0
+
+
+def test_releasing_a_packed_array_leaves_its_neighbour_and_a_heap_array_is_only_zeroed():
+    first, second = own_pages_packed([np.ones((3000, 4)), np.full((3000, 4), 7.0)])
+    release_rows(first, 10)
+    assert (first[:10] == 1).all() and not first[10:].any()
+    assert (second == 7.0).all()
+    on_heap = np.ones((100, 3))
+    assert release_rows(on_heap, 40) == 0
+    assert (on_heap[:40] == 1).all() and not on_heap[40:].any()

@@ -70,3 +70,31 @@ def own_pages_packed(arrays: Sequence[np.ndarray | None]) -> list[np.ndarray | N
         packed.append(kept)
     return packed
 
+
+
+def release_rows(array: np.ndarray, first_row: int, written_rows: int | None = None) -> int:
+    """Zero rows ``first_row:`` of a `lazy_zeros` array and give the kernel back the whole pages past them, so that
+    a reserved array whose use shrank costs the memory of its rows in use again (they read as zeros, and cost
+    memory again once written). ``written_rows``: rows past it were never written (only the ones before it are
+    zeroed: zeroing the rest of a reserve would make it resident). Returns the bytes handed back: 0 for an array on
+    the heap (only zeroed), and where the kernel cannot take them."""
+    first_row = max(0, min(first_row, array.shape[0]))
+    array[first_row:written_rows] = 0
+    buffer = array
+    while buffer is not None and not isinstance(buffer, mmap.mmap):  # views, then numpy's memoryview of the map
+        buffer = buffer.obj if isinstance(buffer, memoryview) else getattr(buffer, "base", None)
+    if buffer is None or not array.flags.c_contiguous or not hasattr(mmap, "MADV_DONTNEED"):
+        return 0
+    offset = array.ctypes.data - np.frombuffer(buffer, np.uint8, count=1).ctypes.data  # a packed array's place
+    start = -(-(offset + first_row * array.strides[0]) // mmap.PAGESIZE) * mmap.PAGESIZE  # first whole page
+    end = offset + array.nbytes
+    if end < len(buffer):  # another array of the pack follows: its first page stays
+        end = end // mmap.PAGESIZE * mmap.PAGESIZE
+    length = end - start
+    if length <= 0:
+        return 0
+    try:
+        buffer.madvise(mmap.MADV_DONTNEED, start, length)
+    except OSError:
+        return 0
+    return length

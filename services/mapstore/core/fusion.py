@@ -28,7 +28,7 @@ from typing import Iterable, NamedTuple
 
 import numpy as np
 
-from services.common.own_pages import lazy_zeros, own_pages_packed
+from services.common.own_pages import lazy_zeros, own_pages_packed, release_rows
 from services.common.pca_codes import CodeMap, convert_sums
 
 _KEY_BITS = 21
@@ -175,7 +175,10 @@ class VoxelGrid:
     backed arrays (`lazy_zeros`): slots are handed out in order (freed ones first), so memory follows the voxels in
     use, and growing does not copy. Growing by copies held the old and new arrays at once (the mapstore's
     10,000-frame map: 69,984 → 104,976 slots for 72,525 voxels at frame ~3,000) and left the old ones as a hole in
-    the heap."""
+    the heap. When many voxels empty at once (a person carved away), `compact` moves the last slots into the holes
+    and hands the pages past them back, so the memory follows the voxels again instead of the most ever held."""
+
+    _FIELDS = ("_keys", "_weight", "_xyz", "_codes", "_colours", "_count", "_code_weight", "_code_count")
 
     def __init__(self, code_dim: int, initial_capacity: int = 4096) -> None:
         self.code_dim = code_dim
@@ -249,6 +252,27 @@ class VoxelGrid:
         for arr in (self._weight, self._xyz, self._codes, self._colours, self._count, self._code_weight,
                     self._code_count):
             arr[empty] = 0
+
+    def compact(self, min_free: int = 4096, min_share: float = 0.125) -> int:
+        """If at least ``min_free`` slots and ``min_share`` of the slots handed out are free: move the voxels in the
+        slots past ``len(self)`` into the free ones below it and release the rest (`release_rows`). The sums do not
+        change, only where they are kept. Returns the slots released (0 when it did not compact)."""
+        n, free = len(self._slot_of), len(self._free)
+        if free < max(min_free, min_share * self._used):
+            return 0
+        holes = np.array(sorted(s for s in self._free if s < n), np.int64)
+        is_free = np.zeros(self._used - n, bool)
+        is_free[[s - n for s in self._free if s >= n]] = True
+        moved = np.flatnonzero(~is_free) + n  # the voxels past n: as many as the holes below it
+        for name in self._FIELDS:
+            arr = getattr(self, name)
+            arr[holes] = arr[moved]
+        for key, slot in zip(self._keys[holes].tolist(), holes.tolist()):
+            self._slot_of[key] = slot
+        released, used, self._used, self._free = self._used - n, self._used, n, []
+        for name in self._FIELDS:
+            release_rows(getattr(self, name), n, used)
+        return released
 
     def set_code_dim(self, code_dim: int) -> None:
         """Give a grid that has no code sums yet (only keyframes without codes fused so far) its code size."""

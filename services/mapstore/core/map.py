@@ -307,6 +307,8 @@ class KeyframeMap(Carving, Folding):
         if dirty:
             self.revision += 1
             self._fused_cache = None
+        if self._grid is not None:
+            self._grid.compact()  # after voxels emptied (carving, a keyframe moved): memory follows the map
         return RefreshReport(dirty, len(self._grid) if self._grid is not None else 0)
 
     def _code_dim(self, codes: np.ndarray | None, cmap) -> int:
