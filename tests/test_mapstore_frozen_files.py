@@ -65,6 +65,26 @@ def test_a_merge_holds_a_chunk_of_the_stored_sums_not_all_of_them(tmp_path):
     assert peaks["files"] < 0.15 * run_bytes, (peaks, run_bytes)
 
 
+def test_a_merge_at_the_default_chunk_holds_less_than_the_stored_run(tmp_path):
+    """Folding keyframe after keyframe into a stored run the size of the 10,000-frame stream's (~55k rows): the
+    merges it triggers hold less at once than the run itself (at 16,384 rows a chunk they held 1.7x the run, which
+    set the mapstore's high-water once folding began)."""
+    rng = np.random.default_rng(3)
+    frozen = FrozenSums(FileSums(tmp_path / "map.db"))
+    for part in _parts(rng, 40, 1400):  # one folded keyframe's voxels each
+        frozen.add(part)
+    run_rows, later = frozen._run_rows, _parts(rng, 12, 1400)  # past a quarter of the run: at least one merge
+    tracemalloc.start()
+    for part in later:
+        frozen.add(part)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert frozen._run_rows > run_rows > 40_000  # merged into a run of about the stream's size
+    row_bytes = sum(a.itemsize * int(np.prod(a.shape[1:])) for a in dataclasses.astuple(_parts(rng, 1, 1)[0])
+                    if a is not None)
+    assert peak < 0.85 * run_rows * row_bytes, (peak, run_rows * row_bytes)
+
+
 def test_a_failed_write_loses_no_rows_and_leaves_no_partial_run(tmp_path):
     """A disk that fills up during a merge: the merge raises, the rows it was merging stay (pending, and the old
     run), its partial files are removed, and the next merge once there is room holds everything."""

@@ -4,7 +4,7 @@ Nothing but a PCA refit, the compaction of an old version or a rebuild reads the
 live in a `SumsStore` the caller gives. `MemorySums` (the default) holds them as arrays;
 ``services/mapstore/frozen_files.py`` keeps them in files beside the map's database, out of the process's memory:
 on a 10,000-frame stream they were the mapstore's largest growing part (26k → 122k rows, docs/BENCHMARKS.md).
-Every read and every merge handles `chunk_rows` (16,384) rows at a time, so with files neither ever holds a
+Every read and every merge handles `chunk_rows` (4,096) rows at a time, so with files neither ever holds a
 version's whole sums (an in-memory merge held ~4 copies of them).
 """
 from __future__ import annotations
@@ -14,7 +14,12 @@ from typing import Iterable, Iterator, Protocol
 
 import numpy as np
 
-from services.mapstore.core.fusion import RECODE_ROWS, Contribution, merge_contributions
+from services.mapstore.core.fusion import Contribution, merge_contributions
+
+# rows of stored sums read and merged at once: a merge holds ~2.5x a chunk's sums beside the rows pending. At
+# 16,384 a merge into the 10,000-frame stream's ~55k stored rows peaked at 18 MB, which set the mapstore's
+# high-water once folding began; at 4,096, 7.6 MB (docs/BENCHMARKS.md, forty-eighth session)
+CHUNK_ROWS = 4096
 
 
 class SumsStore(Protocol):
@@ -65,7 +70,7 @@ class FrozenSums:
     at most ``chunk_rows`` rows, in ascending distinct keys.
     """
 
-    chunk_rows: int = RECODE_ROWS
+    chunk_rows: int = CHUNK_ROWS
 
     def __init__(self, store: SumsStore | None = None, min_pending: int = 4096, chunk_rows: int | None = None) -> None:
         self._store = store if store is not None else MemorySums()
