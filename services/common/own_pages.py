@@ -71,7 +71,6 @@ def own_pages_packed(arrays: Sequence[np.ndarray | None]) -> list[np.ndarray | N
     return packed
 
 
-
 def release_rows(array: np.ndarray, first_row: int, written_rows: int | None = None) -> int:
     """Zero rows ``first_row:`` of a `lazy_zeros` array and give the kernel back the whole pages past them, so that
     a reserved array whose use shrank costs the memory of its rows in use again (they read as zeros, and cost
