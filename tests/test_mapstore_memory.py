@@ -338,13 +338,13 @@ def test_a_grid_whose_voxels_empty_compacts_to_the_same_sums_and_gives_their_mem
     for p in parts[::2]:  # half of them leave: their voxels empty all over the slots
         grid.apply(p, -1)
     kept = parts[1::2]
+    expected = grid.fused()  # before the memory is read: its arrays are not the grid's
     before, free = process.memory_info().rss, len(grid._free)
     assert free > len(grid) // 2
-    expected = grid.fused()
     released = grid.compact()
     assert released == free and grid._used == len(grid) and not grid._free
     freed = before - process.memory_info().rss
-    assert freed > 0.5 * released * (76 + 4 * k), (freed, released)
+    assert freed > 0.4 * released * (76 + 4 * k), (freed, released)  # 0.68 measured; ~0 without the release
     fused = grid.fused()
     for name in ("keys", "xyz", "codes", "colours", "weight", "count", "code_weight"):
         np.testing.assert_array_equal(getattr(fused, name), getattr(expected, name), err_msg=name)
