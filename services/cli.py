@@ -11,7 +11,6 @@ from pathlib import Path
 
 from pydantic import ValidationError
 
-from .common import allocator
 from .common.errors import KmVipeError
 from .common.keys import DEFAULT_STREAM
 from .common.logs import setup_logging
@@ -147,7 +146,6 @@ def _cmd_service(args: argparse.Namespace) -> int:
         raise KmVipeError(f"unknown service {args.name!r}; services: {', '.join(children.PIPELINE)}")
     if not children.is_built(args.name):
         raise KmVipeError(f"service {args.name!r} is not built in this version of KM-ViPE")
-    allocator.ensure(args.name)  # may execute this process again (TCMalloc preloaded), with the same arguments
     return importlib.import_module(f"services.{args.name}.__main__").main()
 
 

@@ -81,13 +81,15 @@ def test_a_bad_setting_stops_the_service_with_the_setting_named_and_no_traceback
     assert "KMVIPE_MALLOC_" in result.stderr and "'auto', 'glibc' or 'tcmalloc'" in result.stderr
 
 
-def test_python_m_services_ba_takes_its_allocator_before_it_imports_torch():
-    """`python -m services.ba` runs `ensure` first: a bad setting stops it (exit code 2, no traceback) before torch
-    is imported, so an exec onto TCMalloc would not pay for torch's import twice."""
+@pytest.mark.parametrize("service", ["ba", "mapstore"])
+def test_python_m_services_takes_its_allocator_before_its_work_and_ba_before_torch(service):
+    """`python -m services.NAME` goes through `service_main`, which runs `ensure` first: a bad setting stops any
+    service (exit code 2, no traceback; the mapstore used to ignore it), and ba before torch is imported, so an exec
+    onto TCMalloc would not pay for torch's import twice."""
     environ = {k: v for k, v in os.environ.items() if not k.startswith("KMVIPE_")}
-    result = subprocess.run([sys.executable, "-X", "importtime", "-m", "services.ba"], cwd=REPO, capture_output=True,
-                            text=True, timeout=120, env={**environ, "PYTHONPATH": str(REPO),
-                                                         "KMVIPE_MALLOC_ALLOCATOR": "jemalloc"})
+    result = subprocess.run([sys.executable, "-X", "importtime", "-m", f"services.{service}"], cwd=REPO,
+                            capture_output=True, text=True, timeout=120,
+                            env={**environ, "PYTHONPATH": str(REPO), "KMVIPE_MALLOC_ALLOCATOR": "jemalloc"})
     assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr[-2000:]
     assert "KMVIPE_MALLOC_" in result.stderr
     imported = {line.split("|")[-1].strip() for line in result.stderr.splitlines() if line.startswith("import time:")}

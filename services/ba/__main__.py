@@ -5,16 +5,14 @@ from __future__ import annotations
 
 import sys
 
-from services.common.allocator import ensure
-from services.common.errors import KmVipeError
 from services.common.lifecycle import tune_malloc_for_tensors
 from services.common.service_main import service_main
 from services.common.streams import serve
 
 
 def _body(bus, stop) -> None:
-    # imported here, not at the top: `python -m services.ba` runs `ensure` first, and when that executes the process
-    # again on TCMalloc, torch (~2 s) has not been imported for nothing
+    # imported here, not at the top: service_main puts ba on TCMalloc first, by executing the process again, and
+    # torch (~2 s) would have been imported for nothing
     from services.ba.checkpoint import pending
     from services.ba.service import build_state, run
     from services.ba.settings import BaSettings
@@ -39,9 +37,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    try:
-        ensure("ba")  # as `kmvipe service ba` does: may execute this process again on TCMalloc
-    except KmVipeError as exc:
-        print(f"ba: {exc}", file=sys.stderr)
-        sys.exit(2)  # as the runner and `kmvipe service` exit on a setting
     sys.exit(main())

@@ -7,10 +7,11 @@ sessions only slowed that (docs/BENCHMARKS.md). TCMalloc keeps freed memory in s
 what an earlier one freed; the same BA also runs ~20 % faster on it. The PyTorch performance guide recommends it
 for CPU work for the same reasons.
 
-A library chosen here must be in the process before anything allocates, so a service entry point calls
-:func:`ensure` first: when the chosen allocator is not the one in use, the process executes itself again with
-``LD_PRELOAD`` set (same pid, same command line, before any thread or the bus exists). ``kmvipe run``, ``kmvipe
-service`` and the containers all start services that way, so one setting covers every deployment.
+A library chosen here must be in the process before the service's work allocates, so every service's
+``service_main`` calls :func:`ensure` first: when the chosen allocator is not the one in use, the process executes
+itself again with ``LD_PRELOAD`` set (same pid, same command line, before the bus exists). ``kmvipe run``, ``kmvipe
+service``, ``python -m services.NAME`` and the containers all go through it, so one setting covers every
+deployment.
 """
 from __future__ import annotations
 

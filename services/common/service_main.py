@@ -42,6 +42,8 @@ def service_main(name: str, body: ServiceBody, tune_malloc: Callable[[], None] |
                  blas_threads: int | None = None) -> int:
     """Run ``body(bus, stop)`` as service ``name``; returns the process exit code (body's int, else 0).
 
+    It first puts the process on the service's allocator (:func:`services.common.allocator.ensure`), so every way
+    of starting a service (``kmvipe service``, the runner, ``python -m services.NAME``) honours that setting.
     Bad settings and known errors end the process with one message and exit code 2, never a traceback.
     ``tune_malloc`` tunes the allocator for what the service holds, one of :mod:`services.common.lifecycle`'s
     (``tune_malloc_for_frames``: frame-sized buffers and the map's arrays; ``_for_tensors``: large tensor
@@ -50,6 +52,11 @@ def service_main(name: str, body: ServiceBody, tune_malloc: Callable[[], None] |
     With ``KMVIPE_METRICS_PORT`` set, ``/metrics``, ``/livez`` and ``/readyz`` are served while the bus is open
     (:mod:`services.common.metrics`).
     """
+    try:
+        allocator.ensure(name)  # first: may execute this process again on its allocator, same pid and arguments
+    except KmVipeError as exc:  # a bad KMVIPE_MALLOC_ALLOCATOR, or one that is not installed
+        print(f"{name}: {exc}", file=sys.stderr)
+        return 2
     try:
         setup_logging(name)
     except (ValidationError, KmVipeError) as exc:  # a bad [log] table or KMVIPE_CONFIG file

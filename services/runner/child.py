@@ -2,8 +2,7 @@
 
 On Linux it first asks the kernel to send it SIGTERM when the runner dies (``PR_SET_PDEATHSIG``), so a runner
 that is killed outright (SIGKILL, the OOM killer) leaves no service behind: each stops as on ``docker stop``.
-Then it runs ``services.NAME`` exactly as ``kmvipe service NAME`` does, on the service's allocator
-(:func:`services.common.allocator.ensure`). Nothing here needs the working directory.
+Then it runs ``services.NAME`` exactly as ``kmvipe service NAME`` does. Nothing here needs the working directory.
 """
 from __future__ import annotations
 
@@ -13,8 +12,6 @@ import os
 import signal
 import sys
 
-from services.common import allocator
-from services.common.errors import KmVipeError
 
 PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 
@@ -36,11 +33,6 @@ def die_with_parent(parent_pid: int) -> None:
 def main(argv: list[str] | None = None) -> int:
     name, parent_pid = (argv if argv is not None else sys.argv[1:])[:2]
     die_with_parent(int(parent_pid))
-    try:
-        allocator.ensure(name)  # may execute this process again, with the same arguments
-    except KmVipeError as exc:
-        print(f"{name}: {exc}", file=sys.stderr)
-        return 2
     sys.argv = [f"kmvipe service {name}"]
     return importlib.import_module(f"services.{name}.__main__").main()
 
