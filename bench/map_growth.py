@@ -28,10 +28,12 @@ from tqdm import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from services.common.camera import scale_intrinsics  # noqa: E402
-from services.evaluation.ate import umeyama  # noqa: E402
+from services.evaluation.ate import align_poses, matched_poses  # noqa: E402
 from services.evaluation.map_quality import apply_sim3, backproject_frame  # noqa: E402
-from services.evaluation.trajectory_io import read_tum  # noqa: E402
+from services.evaluation.trajectory_io import Trajectory, read_tum  # noqa: E402
 from services.mapstore.config import FusionParams  # noqa: E402
+from services.mapstore.core.fusion import voxel_keys as pack_voxel_keys  # noqa: E402
+from services.runner.groundtruth import MAX_STAMP_DIFF_S  # noqa: E402
 from services.synth import SynthWorld  # noqa: E402
 from services.synth.spec import config_from_spec  # noqa: E402
 
@@ -66,26 +68,20 @@ _GRID_OFFSET = np.array([0.37, 0.61, 0.23])  # voxels
 
 
 def voxel_keys(xyz: np.ndarray, voxel: float) -> np.ndarray:
-    """(N,) int64 keys of the voxels of (N, 3) points (21 bits a coordinate) in a grid off the world's axes."""
-    ijk = np.floor(xyz @ _GRID_ROTATION.T / voxel + _GRID_OFFSET).astype(np.int64) + (1 << 20)
-    return (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
+    """(N,) int64 keys of the voxels of (N, 3) points, packed as the mapstore packs its own, in a grid off the
+    world's axes."""
+    return pack_voxel_keys(np.floor(xyz @ _GRID_ROTATION.T / voxel + _GRID_OFFSET))
 
 
 def estimated_alignment(world: SynthWorld, trajectory: Path):
     """The run's final poses by frame index, and the Sim(3) that takes them onto the world's."""
-    traj = read_tum(trajectory)
-    index = {int(t): i for i, t in enumerate(world.timestamps_ns())}
-    poses = {}
-    for t, pose in zip(traj.timestamps, traj.world_from_cam):
-        i = index.get(round(t * 1e9))
-        if i is not None:
-            poses[i] = pose
-    if len(poses) < 3:
-        raise SystemExit(f"{trajectory}: fewer than 3 poses at the source's timestamps; is it this source's run?")
-    seqs = sorted(poses)
-    align = umeyama(np.array([poses[i][:3, 3] for i in seqs]),
-                    np.array([world.world_from_cam(i)[:3, 3] for i in seqs]), with_scale=True)
-    return poses, align
+    truth = Trajectory(world.timestamps_ns() / 1e9, world.poses)
+    try:  # associated by timestamp as the run's own ATE is (services/runner/groundtruth.py)
+        reference, estimate, pairs = matched_poses(truth, read_tum(trajectory), MAX_STAMP_DIFF_S)
+    except ValueError as exc:
+        raise SystemExit(f"{trajectory}: {exc}; is it this source's run?") from exc
+    align = align_poses(estimate[:, :3, 3], reference[:, :3, 3], "sim3")
+    return dict(zip(pairs.reference_index.tolist(), estimate)), align
 
 
 def map_growth(world: SynthWorld, depth_files: dict[int, Path], poses: dict[int, np.ndarray], align,
