@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import logging
 
 import numpy as np
 import pytest
@@ -215,15 +216,20 @@ def _streamed_with_background_bas_over(keyframes: int, edges: int = 0):
     return world, fe
 
 
-def test_a_background_ba_over_the_newest_keyframes_leaves_the_older_ones_where_they_are():
+def test_a_background_ba_over_the_newest_keyframes_leaves_the_older_ones_where_they_are(caplog):
     """``background_ba_keyframes`` bounds the background BA (its memory and time grow with its edges): it spans the
     newest that many held keyframes, the oldest of them its gauge; the keyframes before them keep their poses and
-    maps, and the update carries the maps of the keyframes it spanned only."""
+    maps, and the update carries the maps of the keyframes it spanned only. Its log line says how many steps it
+    took (what a time bound leaves of its iterations)."""
     world, fe = _streamed_with_background_bas_over(5)
     g = fe.graph
     assert len(g) >= 7  # more than the 5 it spans and its gauge
     poses, disparity = [p.clone() for p in g.poses], [d.clone() for d in g.disparity]
-    update = fe.refine_globally()
+    with caplog.at_level(logging.INFO, logger="services.ba.frontend.refinement"):
+        update = fe.refine_globally()
+    logged = [r for r in caplog.records if r.getMessage() == "background BA"]
+    assert len(logged) == 1 and logged[0].keyframes == 5 and logged[0].accepted
+    assert 1 <= logged[0].steps <= fe.params.global_ba.iterations
     assert update.graph is not None and update.graph.updated_seqs.tolist() == g.seqs[-5:]
     gauge = len(g) - 5
     for k in range(len(g)):

@@ -122,7 +122,8 @@ class BaSettings(BASettings):
     keyframes keep arriving: a few iterations that keep the live map's drift down."""
     background_ba_keyframes: int = FrontendParams.background_ba_keyframes
     """... over this many keyframes, the newest held ones and the landmarks they reach counted together (0:
-    ``keep_keyframes``): the BA's memory and time grow with its keyframes' edges."""
+    ``keep_keyframes``): the BA's memory and time grow with its keyframes' edges, and within its time bound a wider
+    span gets fewer steps."""
     background_ba_edges: int = FrontendParams.background_ba_edges
     """... and at most this many edges, the oldest keyframes left out until it fits (0: no bound but the
     keyframes'): loop edges cost memory like any other (588 is what 100 keyframes in a row have at radius 3)."""

@@ -13,6 +13,7 @@ import time
 from dataclasses import replace
 from typing import Callable
 
+from services.ba.core.ba import BAResult
 from services.ba.frontend.updates import Update, graph_update, pose_update
 
 logger = logging.getLogger(__name__)
@@ -99,9 +100,10 @@ class Refinement:
         self._background_bas += 0 if self._live else 1
         keyframes = self._background_span()
         began = time.monotonic()
-        accepted = self._global_ba(bound, keyframes)
+        result = self._global_ba(bound, keyframes)
+        accepted = result is not None
         logger.info("background BA", extra={"keyframes": len(keyframes), "edges": self._edge_count(keyframes),
-                                            "accepted": accepted,
+                                            "accepted": accepted, "steps": len(result.costs) - 1 if accepted else 0,
                                             "without_codes": sum(g.codes[k] is None for k in keyframes),
                                             "seconds": round(time.monotonic() - began, 2)})
         return self._update(keyframes) if accepted else Update()
@@ -155,10 +157,10 @@ class Refinement:
             bounds.append(self.params.settled_global_ba_s)
         return min((b for b in bounds if b > 0), default=0.0)
 
-    def _global_ba(self, bound_s: float, keyframes: list[int] | None = None) -> bool:
+    def _global_ba(self, bound_s: float, keyframes: list[int] | None = None) -> BAResult | None:
         """The BA over ``keyframes`` (positions, the oldest the gauge; default every held keyframe but the
         landmarks) and the landmarks their loop edges reach, fixed with the gauge, with the global edge set, within
-        ``bound_s`` seconds (:func:`time_bound`; 0: all its iterations); False when its result was refused."""
+        ``bound_s`` seconds (:func:`time_bound`; 0: all its iterations); None when its result was refused."""
         g = self.graph
         keyframes = g.recent() if keyframes is None else keyframes
         landmarks = g.linked_landmarks(keyframes)
@@ -166,7 +168,7 @@ class Refinement:
         if landmarks:  # older than every held keyframe, so first in the span: the poses held fixed
             params = replace(params, fixed_poses=len(landmarks) + 1)
         span = landmarks + keyframes
-        return g.run(span, g.pairs(span, self.params.graph.global_radius), params, time_bound(bound_s)) is not None
+        return g.run(span, g.pairs(span, self.params.graph.global_radius), params, time_bound(bound_s))
 
     def refine_frame(self) -> Update:
         """Mapping's spare time on a live stream, one frame per call; its revised pose in the update (empty when
