@@ -104,9 +104,9 @@ class FrontendParams:
     # mapping behind them (first poses 1.34-2.32 m against 1.45-1.66 m); at 0.6 s it does 2-3 iterations over 30-60
     # keyframes and the live map drifts less (KITTI 07 first poses ~1.5 -> ~1.1 m; docs/BENCHMARKS.md)
     background_ba_keyframes: int = 60  # ... over this many keyframes, the newest held ones and the landmarks they
-    # reach (0: keep_keyframes; Refinement._background_span). Its time bound leaves a span of every held keyframe
-    # 2-4 steps on a slow machine: KITTI 07 lossless 0.27-0.32 m over all, 0.17-0.20 m over 60, 0.15-0.16 m over 40,
-    # but TartanAir in process 0.88-1.00 % of path over all or 60 and 1.18-1.27 % over 40 (docs/BENCHMARKS.md)
+    # reach (0: keep_keyframes; Refinement._background_span). Within its time bound a slow machine takes 3-4 steps
+    # over 60, fewer over every held one: KITTI 07 lossless 0.27-0.32 m over all, 0.17-0.20 m over 60, 0.15-0.16 m
+    # over 40, but TartanAir in process 0.88-1.00 % of path over all or 60, 1.18-1.27 % over 40 (docs/BENCHMARKS.md)
     background_ba_edges: int = 0  # ... and at most this many edges (0: no bound but the keyframes';
     # Refinement._background_span): its memory grows with its edges (~0.4 MB each). Off by default: at 588 (100
     # keyframes in a row at radius 3) a 10,000-frame orbit's live poses were 1.70 m off over 5,389 frames against
