@@ -33,6 +33,7 @@ from services.evaluation.map_quality import apply_sim3, backproject_frame  # noq
 from services.evaluation.trajectory_io import Trajectory, read_tum  # noqa: E402
 from services.mapstore.config import FusionParams  # noqa: E402
 from services.mapstore.core.fusion import voxel_keys as pack_voxel_keys  # noqa: E402
+from services.mapstore.export import read_depth_map  # noqa: E402
 from services.runner.groundtruth import MAX_STAMP_DIFF_S  # noqa: E402
 from services.synth import SynthWorld  # noqa: E402
 from services.synth.spec import config_from_spec  # noqa: E402
@@ -47,17 +48,6 @@ class Growth(NamedTuple):
     estimated: np.ndarray  # (K,) voxels of the run's depth under its aligned poses
     true: np.ndarray  # (K,) voxels of the exact depth of the same cells under the exact poses
     voxel: float  # edge, metres
-
-
-def read_depth(path: Path) -> np.ndarray:
-    """An exported keyframe depth map (services/mapstore/export.py): ``.npz`` (float, the map's scale) or ``.png``
-    (uint16 millimetres); 0 = unknown."""
-    if path.suffix == ".npz":
-        return np.load(path)["depth"].astype(np.float64)
-    depth = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if depth is None:
-        raise ValueError(f"cannot read {path}")
-    return depth.astype(np.float64) / 1000.0
 
 
 # The synthetic room's floor and walls are planes of the world's axes, some on a voxel boundary: exact points there
@@ -95,7 +85,7 @@ def map_growth(world: SynthWorld, depth_files: dict[int, Path], poses: dict[int,
     for seq in tqdm(sorted(depth_files), desc="keyframes", unit="kf", disable=not progress):
         if seq not in poses:
             continue
-        depth = read_depth(depth_files[seq])
+        depth = read_depth_map(depth_files[seq])
         frame = world.render(seq)
         h, w = frame.depth.shape
         stride = GRID * w // depth.shape[1]  # the same cells in source pixels

@@ -11,7 +11,8 @@ from scipy.spatial.transform import Rotation
 
 from services.mapstore.core.keyframe import KeyframeDepth
 from services.mapstore.colmap import ColmapImage, read_colmap, visible_points, write_colmap
-from services.mapstore.export import export_all, label_palette, read_ply, write_depth_maps, write_ply
+from services.mapstore.export import (export_all, label_palette, read_depth_map, read_ply, write_depth_maps,
+                                      write_ply)
 
 
 def random_pose(rng: np.random.Generator) -> np.ndarray:
@@ -59,6 +60,9 @@ def test_depth_maps_png_mm_and_npz(tmp_path):
     (npz,) = write_depth_maps(tmp_path / "s", depths, metric=False)
     z = np.load(npz)["depth"]
     np.testing.assert_allclose(z[::8, ::8], [[2.0, 0.0], [0.5, 70.0]], rtol=1e-6)
+    # read back as depth either way (the PNG's 70 m clipped at 65.535 m)
+    np.testing.assert_allclose(read_depth_map(npz)[::8, ::8], [[2.0, 0.0], [0.5, 70.0]], rtol=1e-6)
+    np.testing.assert_allclose(read_depth_map(png)[::8, ::8], [[2.0, 0.0], [0.5, 65.535]])
     # written again once the map became metric (an earlier export, or the keyframe's fold): one file, the new kind
     write_depth_maps(tmp_path / "s", depths, metric=True)
     assert [p.name for p in (tmp_path / "s").iterdir()] == ["000003.png"]

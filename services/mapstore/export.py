@@ -59,6 +59,19 @@ def depth_map_path(folder: Path, kf_id: int, metric: bool) -> Path:
     return Path(folder) / f"{kf_id:06d}.{'png' if metric else 'npz'}"
 
 
+def read_depth_map(path: Path) -> np.ndarray:
+    """A depth map `write_depth_maps` wrote, back as float64 depth (metres from a PNG, the map's scale from an npz;
+    0 = unknown)."""
+    path = Path(path)
+    if path.suffix == ".npz":
+        with np.load(path) as data:
+            return data["depth"].astype(np.float64)
+    mm = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if mm is None:
+        raise ValueError(f"cannot read the depth map {path}")
+    return mm.astype(np.float64) / DEPTH_PNG_SCALE
+
+
 def write_depth_maps(folder: Path, depths: dict[int, KeyframeDepth], metric: bool, upsample: int = 8) -> list[Path]:
     """One depth map per keyframe: `<kf>.png` (uint16 mm) when metric, else `<kf>.npz` (float32, arbitrary scale);
     one of the other kind left by an earlier export (the map became metric since) is removed.
