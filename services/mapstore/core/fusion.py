@@ -23,13 +23,13 @@ fold does: core/snapping.py).
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
-from itertools import repeat
 from typing import Iterable, NamedTuple
 
 import numpy as np
 
 from services.common.own_pages import lazy_zeros, own_pages_packed, release_rows
 from services.common.pca_codes import CodeMap, convert_sums
+from services.mapstore.core.slot_table import SlotTable
 
 _KEY_BITS = 21
 _KEY_OFFSET = 1 << (_KEY_BITS - 1)
@@ -182,7 +182,7 @@ class VoxelGrid:
 
     def __init__(self, code_dim: int, initial_capacity: int = 4096) -> None:
         self.code_dim = code_dim
-        self._slot_of: dict[int, int] = {}
+        self._slot_of = SlotTable()  # key -> slot (core/slot_table.py)
         self._free: list[int] = []
         self._used = 0
         self._alloc(initial_capacity, np.zeros)
@@ -201,25 +201,33 @@ class VoxelGrid:
             setattr(self, name, arr)
 
     def _slots(self, keys: np.ndarray) -> np.ndarray:
-        """Slots of `keys`, creating the missing ones."""
-        get = self._slot_of.get
-        slots = np.fromiter(map(get, keys.tolist(), repeat(-1)), np.int64, keys.shape[0])  # in C, no Python loop
-        for i in np.flatnonzero(slots < 0).tolist():  # the new voxels, one dict lookup each
-            key = int(keys[i])
-            slot = get(key)
-            if slot is None:
-                slot = self._free.pop() if self._free else self._new_slot()
-                self._slot_of[key] = slot
-                self._keys[slot] = key
-            slots[i] = slot
+        """Slots of `keys`, creating the missing ones: freed slots first (the most recently freed first), then
+        new ones past those handed out."""
+        keys = np.asarray(keys, np.int64)
+        slots = self._slot_of.lookup(keys)
+        missing = slots < 0
+        if missing.any():
+            new, first, where = np.unique(keys[missing], return_index=True, return_inverse=True)
+            given = np.empty(new.size, np.int64)
+            given[np.argsort(first, kind="stable")] = self._take_slots(new.size)  # in order of first appearance
+            self._keys[given] = new
+            self._slot_of.insert(new, given)
+            slots[missing] = given[where.reshape(-1)]
         return slots
 
-    def _new_slot(self) -> int:
-        if self._used == self._keys.shape[0]:
+    def _take_slots(self, n: int) -> np.ndarray:
+        reused = min(n, len(self._free))
+        taken = self._free[len(self._free) - reused:][::-1]
+        del self._free[len(self._free) - reused:]
+        return np.concatenate([np.asarray(taken, np.int64), self._new_slots(n - reused)])
+
+    def _new_slots(self, n: int) -> np.ndarray:
+        """``n`` slots past those handed out (the arrays reserved for them when they outgrow their first size)."""
+        if self._used + n > self._keys.shape[0]:
             slot_bytes = 76 + 4 * self.code_dim  # the fields of _alloc
-            self._alloc(max(self._keys.shape[0] * 3 // 2, 16, RESERVED_GRID_BYTES // slot_bytes))
-        self._used += 1
-        return self._used - 1
+            self._alloc(max(self._keys.shape[0] * 3 // 2, 16, self._used + n, RESERVED_GRID_BYTES // slot_bytes))
+        self._used += n
+        return np.arange(self._used - n, self._used, dtype=np.int64)
 
     def _grid_codes(self, c: Contribution, cmap: CodeMap | None) -> np.ndarray:
         """A contribution's (M, K) code sums in the grid's version (``cmap``: from its own; None = the same)."""
@@ -246,9 +254,8 @@ class VoxelGrid:
             for arr in (self._codes, self._code_weight, self._code_count):
                 arr[uncoded] = 0
         empty = slots[self._count[slots] <= 0]
-        for slot in empty.tolist():
-            del self._slot_of[int(self._keys[slot])]
-            self._free.append(slot)
+        self._slot_of.remove(self._keys[empty])
+        self._free.extend(empty.tolist())
         for arr in (self._weight, self._xyz, self._codes, self._colours, self._count, self._code_weight,
                     self._code_count):
             arr[empty] = 0
@@ -267,8 +274,7 @@ class VoxelGrid:
         for name in self._FIELDS:
             arr = getattr(self, name)
             arr[holes] = arr[moved]
-        for key, slot in zip(self._keys[holes].tolist(), holes.tolist()):
-            self._slot_of[key] = slot
+        self._slot_of.assign(self._keys[holes], holes)
         released, used, self._used, self._free = self._used - n, self._used, n, []
         for name in self._FIELDS:
             release_rows(getattr(self, name), n, used)
@@ -312,8 +318,8 @@ class VoxelGrid:
 
     def fused(self) -> FusedVoxels:
         """Weighted means of every occupied voxel, sorted by key (deterministic order)."""
-        slots = np.fromiter(self._slot_of.values(), np.int64, len(self._slot_of))
-        slots = slots[np.argsort(self._keys[slots], kind="stable")]
+        keys, slots = self._slot_of.items()
+        slots = slots[np.argsort(keys, kind="stable")]
         w = self._weight[slots]
         inv = np.where(w > 0, 1.0 / np.where(w > 0, w, 1.0), 0.0)
         cw = self._code_weight[slots]
