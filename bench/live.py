@@ -7,7 +7,9 @@ dropped count as not posed), the frame → first pose latency, the Sim(3) ATE of
 consumer saw) and of the final ones, drops per stage (from each stage's EOS), the keyframes whose codes the
 backbone skipped, and each service's CPU time while the stream ran and peak RSS (psutil, every 0.5 s). This
 script runs `kmvipe run` in a subprocess (so it measures the real processes, the bus and the model loading),
-relays its progress bar, and prints one markdown table per run with the command it ran and the load average.
+relays its progress bar, and prints one markdown table per run with the command it ran, the load average and the
+machine's speed measured just before the run (bench/machine_reference.py: the same code's CPU seconds differ by up
+to ~1.7x between days here).
 
 Modes (several may be given; each is one run):
   --kitti          ../shared/data/kitti07_160 (KITTI 07, 160 frames at 10 Hz), realtime pacing
@@ -46,6 +48,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import machine_reference  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 DATA_DIR = Path(os.environ.get("KMVIPE_DATA_DIR", REPO.parent / "shared" / "data"))
@@ -94,6 +99,7 @@ def run_kmvipe(run: Run, out_root: Path, timeout_s: float | None) -> tuple[dict,
     # 10,000-frame map: 26 s and ~500 MB of the mapstore counted in this run's first 1,000 frames)
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
+    machine = machine_reference.reference()  # before the run: its speed, not the run's load
     load_before = os.getloadavg()
     loads: list[float] = []
     began = time.monotonic()
@@ -121,7 +127,7 @@ def run_kmvipe(run: Run, out_root: Path, timeout_s: float | None) -> tuple[dict,
     meta = {"command": shown, "returncode": proc.returncode, "wall_s": round(wall, 1),
             "load_before": [round(x, 2) for x in load_before], "load_after": [round(x, 2) for x in os.getloadavg()],
             "load_mean_1min": round(sum(loads) / len(loads), 2) if loads else None, "cpus": os.cpu_count(),
-            "note": run.note}
+            "note": run.note, "machine_reference": machine}
     return json.loads(summary_path.read_text()), meta
 
 
@@ -193,6 +199,8 @@ def table(run: Run, summary: dict, meta: dict, out_dir: Path | None = None) -> s
     rows.append(("load average before / mean during (1 min) / after",
                  f"{meta['load_before'][0]:.2f} / {_fmt(meta['load_mean_1min'], '.2f')} / "
                  f"{meta['load_after'][0]:.2f} on {meta['cpus']} CPUs"))
+    rows.append(("this machine's speed before the run (bench/machine_reference.py)",
+                 machine_reference.describe(meta.get("machine_reference"))))
     lines = [f"**{run.label}**: `{meta['command']}`" + (f" ({meta['note']})" if meta["note"] else ""), "",
              "| metric | value |", "|---|---|", *(f"| {k} | {v} |" for k, v in rows)]
     return "\n".join(lines)
