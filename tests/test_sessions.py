@@ -135,6 +135,20 @@ def _map_rows(path: Path) -> tuple[list, list]:
                 db.execute("SELECT key, value FROM meta ORDER BY key").fetchall())
 
 
+def _settled_rows(path: Path, quiet_s: float = 3.0, timeout_s: float = 120.0) -> tuple[list, list]:
+    """The map's rows once they have not changed for ``quiet_s``: after its publisher died, ba and features still
+    map and code what they had, for longer than a fixed wait under a loaded CPU (a 3 s sleep read the rows while
+    keyframe 0's row was still to change, with the slow suite on two workers)."""
+    rows, since, deadline = _map_rows(path), time.monotonic(), time.monotonic() + timeout_s
+    while time.monotonic() - since < quiet_s:
+        assert time.monotonic() < deadline, f"the map at {path} still changed after {timeout_s:.0f} s"
+        time.sleep(0.5)
+        now = _map_rows(path)
+        if now != rows:
+            rows, since = now, time.monotonic()
+    return rows
+
+
 def _session_over_http(port: int, session1: str, session2: str, poses: dict) -> dict:
     """The earlier session stays a map of its own over HTTP: listed, queried and exported by ``?session=``, with
     the trajectory it had (its own world frame), while the plain routes answer for the current session."""
@@ -204,8 +218,7 @@ def test_a_restarted_publisher_opens_a_new_session_and_the_old_sessions_map_is_u
             first.kill()
             first.wait()
             session1 = next(iter(poses))
-            time.sleep(3.0)  # what was in flight settles into the first session's map
-            before = _map_rows(db)
+            before = _settled_rows(db)  # what was in flight settles into the first session's map
             assert ("session", session1) in before[1] and len(before[0]) >= 3
             procs.append(start(["publish", SPEC, "--stream", "cam1", "--pacing", "lossless", "--connect",
                                  tcp_endpoint], env, tmp_path / "publish-2.log"))
