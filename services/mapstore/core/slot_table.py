@@ -79,8 +79,7 @@ class SlotTable:
         todo = np.arange(keys.size)
         while todo.size:  # each round, every open bucket wanted goes to the first key that wants it
             p = pos[todo]
-            was = self._keys[p]
-            open_ = was < 0
+            open_ = self._keys[p] < 0  # EMPTY or REMOVED
             wanted, first = np.unique(p[open_], return_index=True)
             won = todo[open_][first]
             self._removed -= int(np.count_nonzero(self._keys[wanted] == REMOVED))
