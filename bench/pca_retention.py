@@ -19,7 +19,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("KMVIPE_DATA_DIR", ROOT.parent / "shared" / "data"))
@@ -42,7 +41,7 @@ def kitti_keyframes(n_frames: int) -> tuple[list[int], list[np.ndarray]]:
     return ids, images
 
 
-def keyframe_features(images: list[np.ndarray], scales: tuple[float, ...], threads: int) -> list[torch.Tensor]:
+def keyframe_features(images: list[np.ndarray], scales: tuple[float, ...], threads: int) -> list[np.ndarray]:
     """(C, h, w) blended features of each working image with the real backbone."""
     from services.common.models import ModelStore
     from services.common.models.backbones import normalise_rgb
@@ -58,13 +57,13 @@ def _stats(xs: list[float]) -> str:
     return f"{min(xs):.3f} / {statistics.median(xs):.3f}" if xs else "–"
 
 
-def frozen_rows(feats: list[torch.Tensor], k: int, fit_keyframes: int) -> list[tuple[str, str, str]]:
+def frozen_rows(feats: list[np.ndarray], k: int, fit_keyframes: int) -> list[tuple[str, str, str]]:
     from services.features.core.pca import fit_pca, retained_variance
 
-    basis = fit_pca(torch.cat([f.reshape(f.shape[0], -1).T for f in feats[:fit_keyframes]]), k, "bench")
+    basis = fit_pca(np.concatenate([f.reshape(f.shape[0], -1).T for f in feats[:fit_keyframes]]), k, "bench")
     later = feats[fit_keyframes:]
-    pooled = torch.cat([f.reshape(f.shape[0], -1).T for f in later])
-    even = fit_pca(torch.cat([f.reshape(f.shape[0], -1).T for f in feats[::2]]), k, "bench")
+    pooled = np.concatenate([f.reshape(f.shape[0], -1).T for f in later])
+    even = fit_pca(np.concatenate([f.reshape(f.shape[0], -1).T for f in feats[::2]]), k, "bench")
     return [
         (f"frozen after {fit_keyframes} keyframes, later keyframes ({len(later)})", "own",
          _stats([retained_variance(basis, f) for f in later])),
@@ -76,7 +75,7 @@ def frozen_rows(feats: list[torch.Tensor], k: int, fit_keyframes: int) -> list[t
     ]  # fmt: skip
 
 
-def refit_row(feats: list[torch.Tensor], k: int, fit_keyframes: int, below: float, window: int):
+def refit_row(feats: list[np.ndarray], k: int, fit_keyframes: int, below: float, window: int):
     """(label, centre, 'min/median coded', refits, keyframes coded by a basis fitted without them)."""
     from services.features.core.pca import PcaFitter, PcaParams, retained_variance
 
@@ -109,7 +108,6 @@ def main(argv: list[str] | None = None) -> int:
     if not (DATA / "kitti07_160" / "rgb").is_dir():
         print(f"KITTI 07 not found under {DATA} (set KMVIPE_DATA_DIR)", file=sys.stderr)
         return 1
-    torch.set_num_threads(args.threads)
     ids, images = kitti_keyframes(args.frames)
     ids, images = ids[:: args.stride], images[:: args.stride]
     t0 = time.perf_counter()
