@@ -290,8 +290,9 @@ class VoxelGrid:
     def recode(self, parts: list[tuple[Iterable[Contribution], CodeMap | None]], code_dim: int) -> None:
         """Re-sum every voxel's codes in a new version (``code_dim`` = its K) from all the contributions with
         codes now applied, each with the map from its own version; weights, positions and colours are untouched.
-        Each part is an iterable of contributions (a live keyframe's one, or frozen sums' chunks), read once per
-        few columns. A few columns and rows at a time, into the grid's own code array where K is unchanged: the
+        Each part is an iterable of contributions: a list is in memory (a live keyframe's one), its slots looked
+        up once for all the column passes; any other iterable (frozen sums' chunks) is read anew, a few columns
+        at a time. A few columns and rows at a time, into the grid's own code array where K is unchanged: the
         whole grid's float64 codes and each part's converted sums at once were several times the grid's codes, at
         every PCA refit of a growing map (the mapstore's high-water)."""
         coded = [(chunks, None if cmap is None or cmap.is_identity else cmap) for chunks, cmap in parts]
@@ -299,8 +300,7 @@ class VoxelGrid:
             self._codes = None  # freed before its successor is allocated
             self._codes = lazy_zeros((self._keys.shape[0], code_dim), np.float32)
         self.code_dim = code_dim
-        # a live keyframe's slots looked up once for all the column passes (int32, ~4 B a key): one lookup per pass
-        # was a third of a PCA refit's re-sum on KITTI 07; frozen chunks are read anew each pass
+        # int32, ~4 B a key: a lookup per pass was a third of a PCA refit's re-sum on KITTI 07
         live_slots = [[None if c.codes is None else self._slots(c.keys).astype(np.int32) for c in chunks]
                       if isinstance(chunks, list) else None for chunks, _ in coded]
         for col in range(0, code_dim, SUM_COLUMNS):
